@@ -1,0 +1,197 @@
+"""Camera geometry: OpenCV pinhole + [k1, k2, p1, p2, k3] distortion, rotations, camera poses.
+
+Conventions (DESIGN.md): camera frame x right, y down, z forward; X_cam = R_cam_from_local @ X_local + t.
+Projection is our own vectorised numpy (bit-compatible with cv2.projectPoints, see the property tests)
+because the simulator and the refinement project millions of points in small batches.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pipeline.arrays import FloatArray, Pixels, Points3, Rotation, Vec3, check_shape
+from schemas.common import CameraIntrinsics
+
+
+@dataclass(frozen=True, slots=True)
+class CameraModel:
+    """Intrinsics as arrays: K (3, 3) and dist (5,) = [k1, k2, p1, p2, k3]; image size in pixels."""
+
+    K: FloatArray
+    dist: FloatArray
+    width: int
+    height: int
+
+    @staticmethod
+    def from_intrinsics(intrinsics: CameraIntrinsics) -> CameraModel:
+        K = np.array(
+            [[intrinsics.fx, 0.0, intrinsics.cx], [0.0, intrinsics.fy, intrinsics.cy], [0.0, 0.0, 1.0]]
+        )
+        return CameraModel(K, np.array(intrinsics.dist, dtype=np.float64), intrinsics.width, intrinsics.height)
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0.0))
+
+
+def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
+    """Apply the OpenCV radial-tangential model to normalised coordinates (N, 2) -> (N, 2)."""
+    k1, k2, p1, p2, k3 = dist
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([xd, yd], axis=1)
+
+
+def project_points_cam(points_cam: Points3, camera: CameraModel) -> Pixels:
+    """Project points already in the camera frame (N, 3), z > 0 assumed, to distorted pixels (N, 2)."""
+    check_shape(points_cam, "N,3", name="points_cam")
+    xy = points_cam[:, :2] / points_cam[:, 2:3]
+    if camera.has_distortion:
+        xy = distort_normalized(xy, camera.dist)
+    K = camera.K
+    return np.stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1)
+
+
+def project_points(
+    points_local: Points3, R_cam_from_local: Rotation, t_cam_from_local: Vec3, camera: CameraModel
+) -> tuple[Pixels, FloatArray]:
+    """Project local-frame points (N, 3) to pixels (N, 2); also returns the depth z_cam (N,) in metres.
+
+    Points with z_cam <= 0 get NaN pixels: they are behind the camera.
+    """
+    check_shape(points_local, "N,3", name="points_local")
+    points_cam = points_local @ R_cam_from_local.T + t_cam_from_local
+    depth = points_cam[:, 2].copy()
+    safe = points_cam.copy()
+    behind = depth <= 1e-9
+    safe[behind, 2] = 1.0
+    pixels = project_points_cam(safe, camera)
+    pixels[behind] = np.nan
+    return pixels, depth
+
+
+def undistort_pixels(pixels: Pixels, camera: CameraModel) -> FloatArray:
+    """Distorted pixels (N, 2) -> normalised undistorted coordinates (N, 2) (x/z, y/z in the camera frame)."""
+    check_shape(pixels, "N,2", name="pixels")
+    if len(pixels) == 0:
+        return np.zeros((0, 2))
+    if not camera.has_distortion:
+        K = camera.K
+        return np.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
+    K = camera.K
+    target = np.stack([(pixels[:, 0] - K[0, 2] - K[0, 1] * (pixels[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
+                       (pixels[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
+    return _invert_distortion(target, camera.dist)
+
+
+def _invert_distortion(xy_distorted: FloatArray, dist: FloatArray) -> FloatArray:
+    """Solve distort_normalized(xy) = xy_distorted by Newton's method with the analytic 2x2 Jacobian.
+
+    Starts from the distorted point; converges to ~1e-14 in a few steps for any lens whose model is
+    monotonic over the image (OpenCV's own fixed-point loop stalls on strong barrel distortion).
+    """
+    k1, k2, p1, p2, k3 = dist
+    xy = xy_distorted.copy()
+    for _ in range(30):
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+        fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xy_distorted[:, 0]
+        fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - xy_distorted[:, 1]
+        j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+        j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+        j21 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+        j22 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+        det = j11 * j22 - j12 * j21
+        det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+        dx = (j22 * fx - j12 * fy) / det
+        dy = (j11 * fy - j21 * fx) / det
+        xy[:, 0] -= dx
+        xy[:, 1] -= dy
+        if float(np.max(np.abs(dx) + np.abs(dy), initial=0.0)) < 1e-15:
+            break
+    return xy
+
+
+def rotation_from_ypr(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:
+    """Rz(yaw) @ Ry(pitch) @ Rx(roll) for arrays of angles (N,) -> (N, 3, 3) (vehicle body -> world)."""
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    R = np.empty((np.size(yaw), 3, 3))
+    R[:, 0, 0] = cy * cp
+    R[:, 0, 1] = cy * sp * sr - sy * cr
+    R[:, 0, 2] = cy * sp * cr + sy * sr
+    R[:, 1, 0] = sy * cp
+    R[:, 1, 1] = sy * sp * sr + cy * cr
+    R[:, 1, 2] = sy * sp * cr - cy * sr
+    R[:, 2, 0] = -sp
+    R[:, 2, 1] = cp * sr
+    R[:, 2, 2] = cp * cr
+    return R
+
+
+def camera_rotation_from_view(yaw: float, pitch_down: float, roll: float = 0.0) -> Rotation:
+    """R_cam_from_world for a camera whose optical axis points at azimuth `yaw` (rad from east, ccw),
+    tilted `pitch_down` (rad) below the horizon and rolled `roll` (rad, clockwise in the image)."""
+    forward = np.array([math.cos(pitch_down) * math.cos(yaw), math.cos(pitch_down) * math.sin(yaw),
+                        -math.sin(pitch_down)])
+    right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
+    down = np.cross(forward, right)
+    # Roll turns the image axes about the optical axis.
+    c, s = math.cos(roll), math.sin(roll)
+    right_r = c * right + s * down
+    down_r = -s * right + c * down
+    R_world_from_cam = np.stack([right_r, down_r, forward], axis=1)
+    return R_world_from_cam.T.copy()
+
+
+def camera_center(R_cam_from_local: Rotation, t_cam_from_local: Vec3) -> Vec3:
+    """Camera position in the local frame: -R^T t (paper Sec. III-D)."""
+    return -R_cam_from_local.T @ t_cam_from_local
+
+
+def rotation_angle_rad(R_a: Rotation, R_b: Rotation) -> float:
+    """Angle of the relative rotation R_a^T R_b, in radians (0 for equal rotations)."""
+    cos_angle = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
+    return float(math.acos(min(1.0, max(-1.0, cos_angle))))
+
+
+def rotation_from_rvec(rvec: FloatArray) -> Rotation:
+    """Rodrigues vector (3,) -> rotation matrix (3, 3)."""
+    R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+    return np.asarray(R, dtype=np.float64)
+
+
+def rvec_from_rotation(R: Rotation) -> FloatArray:
+    """Rotation matrix (3, 3) -> Rodrigues vector (3,)."""
+    rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
+    return np.asarray(rvec, dtype=np.float64).reshape(3)
+
+
+def quaternion_wxyz_from_rotation(R: Rotation) -> FloatArray:
+    """Unit quaternion [w, x, y, z] (w >= 0) of a rotation matrix."""
+    m = R
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = np.array([(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s])
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = np.array([(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s])
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = np.array([(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s])
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q

@@ -1,0 +1,126 @@
+"""WGS84 <-> UTM, the local origin, and V2X heading -> UTM yaw with the meridian convergence (DESIGN: frames).
+
+A V2X heading is measured from TRUE north, clockwise; a UTM yaw from GRID east, counter-clockwise. Grid
+north and true north differ by the meridian convergence gamma (pyproj's `meridian_convergence`, degrees,
+positive east of the central meridian in the north): grid azimuth = heading - gamma. Several degrees off
+the central meridian that is decimetres at a car's corners, so it is never skipped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import cast
+
+import numpy as np
+from pyproj import CRS, Proj, Transformer
+
+from pipeline.arrays import FloatArray, Points3, PoseArray, Stamps
+from pipeline.errors import InputError
+from schemas.common import LocalOrigin
+from schemas.messages import V2xPosition, VehiclePose
+
+
+def utm_epsg_for(lat_deg: float, lon_deg: float) -> str:
+    """The standard WGS84/UTM zone code for a point, e.g. 'EPSG:32632' (no Norway/Svalbard exceptions)."""
+    if not (-80.0 <= lat_deg <= 84.0):
+        raise InputError("lat", f"lat = {lat_deg} outside the UTM range [-80, 84]")
+    zone = min(60, int(math.floor((lon_deg + 180.0) / 6.0)) + 1)
+    return f"EPSG:{32600 + zone if lat_deg >= 0 else 32700 + zone}"
+
+
+@dataclass(frozen=True)
+class UtmFrame:
+    """Conversions between WGS84 (EPSG:4326, lon/lat order handled inside) and one UTM CRS."""
+
+    crs: str
+    _to_utm: Transformer = field(init=False, repr=False, compare=False)
+    _to_wgs84: Transformer = field(init=False, repr=False, compare=False)
+    _proj: Proj = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        parsed = CRS.from_user_input(self.crs)
+        if parsed.utm_zone is None:
+            raise InputError("crs", f"crs = {self.crs!r} is not a UTM zone")
+        object.__setattr__(self, "_to_utm", Transformer.from_crs("EPSG:4326", parsed, always_xy=True))
+        object.__setattr__(self, "_to_wgs84", Transformer.from_crs(parsed, "EPSG:4326", always_xy=True))
+        object.__setattr__(self, "_proj", Proj(parsed))
+
+    def to_utm(self, lat_deg: FloatArray, lon_deg: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Latitude/longitude (deg) -> easting/northing (m); heights pass through unchanged."""
+        east, north = self._to_utm.transform(np.asarray(lon_deg, float), np.asarray(lat_deg, float))
+        return np.asarray(east, dtype=np.float64), np.asarray(north, dtype=np.float64)
+
+    def to_wgs84(self, east: FloatArray, north: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Easting/northing (m) -> latitude/longitude (deg)."""
+        lon, lat = self._to_wgs84.transform(np.asarray(east, float), np.asarray(north, float))
+        return np.asarray(lat, dtype=np.float64), np.asarray(lon, dtype=np.float64)
+
+    def convergence_deg(self, lat_deg: FloatArray, lon_deg: FloatArray) -> FloatArray:
+        """Meridian convergence gamma (deg) at the given points: grid azimuth = true azimuth - gamma."""
+        factors = self._proj.get_factors(np.asarray(lon_deg, float), np.asarray(lat_deg, float))
+        return np.asarray(factors.meridian_convergence, dtype=np.float64)
+
+    def yaw_from_heading(self, heading_deg: FloatArray, lat_deg: FloatArray, lon_deg: FloatArray) -> FloatArray:
+        """True-north clockwise heading (deg) -> grid-east counter-clockwise yaw (rad), wrapped to (-pi, pi]."""
+        grid_azimuth_deg = np.asarray(heading_deg, float) - self.convergence_deg(lat_deg, lon_deg)
+        yaw = np.radians(90.0 - grid_azimuth_deg)
+        return cast(FloatArray, np.angle(np.exp(1j * yaw)))
+
+    def heading_from_yaw(self, yaw: FloatArray, lat_deg: FloatArray, lon_deg: FloatArray) -> FloatArray:
+        """Inverse of `yaw_from_heading`: grid yaw (rad) -> true heading (deg) in [0, 360)."""
+        grid_azimuth_deg = 90.0 - np.degrees(np.asarray(yaw, float))
+        return cast(FloatArray, np.mod(grid_azimuth_deg + self.convergence_deg(lat_deg, lon_deg), 360.0))
+
+
+def pose_from_v2x(message: V2xPosition, frame: UtmFrame) -> VehiclePose:
+    """V2X position (WGS84, true heading) -> VehiclePose in UTM with grid yaw; pitch/roll 0 when absent."""
+    east, north = frame.to_utm(np.array([message.lat]), np.array([message.lon]))
+    yaw = frame.yaw_from_heading(np.array([message.heading_deg]), np.array([message.lat]), np.array([message.lon]))
+    if not (np.isfinite(east[0]) and np.isfinite(north[0])):
+        raise InputError("v2x", f"lat/lon = {message.lat}, {message.lon} not representable in {frame.crs}")
+    return VehiclePose(
+        stamp_ns=message.stamp_ns,
+        x=float(east[0]),
+        y=float(north[0]),
+        z=message.alt,
+        yaw=float(yaw[0]),
+        pitch=message.pitch or 0.0,
+        roll=message.roll or 0.0,
+    )
+
+
+def v2x_from_pose(
+    pose: VehiclePose, frame: UtmFrame, station_id: int, speed_mps: float, **extra: float | None
+) -> V2xPosition:
+    """VehiclePose in UTM -> V2X position with a true-north heading (what a calibration vehicle sends)."""
+    lat, lon = frame.to_wgs84(np.array([pose.x]), np.array([pose.y]))
+    heading = frame.heading_from_yaw(np.array([pose.yaw]), lat, lon)
+    heading_deg = float(heading[0])
+    if heading_deg >= 360.0:  # float rounding of mod
+        heading_deg = 0.0
+    return V2xPosition(
+        station_id=station_id,
+        stamp_ns=pose.stamp_ns,
+        lat=float(lat[0]),
+        lon=float(lon[0]),
+        alt=pose.z,
+        heading_deg=heading_deg,
+        speed=speed_mps,
+        pitch=pose.pitch,
+        roll=pose.roll,
+        **extra,
+    )
+
+
+def local_points(points_utm: Points3, origin: LocalOrigin) -> Points3:
+    """Absolute UTM (N, 3) -> local frame by subtracting the origin (float64 throughout)."""
+    return np.asarray(points_utm, dtype=np.float64) - np.array([origin.x, origin.y, origin.z])
+
+
+def poses_to_array(poses: list[VehiclePose], origin: LocalOrigin) -> tuple[Stamps, PoseArray]:
+    """VehiclePose list -> (stamps (N,) int64, PoseArray (N, 6) in the local frame)."""
+    stamps = np.array([p.stamp_ns for p in poses], dtype=np.int64)
+    array = np.array([[p.x - origin.x, p.y - origin.y, p.z - origin.z, p.yaw, p.pitch, p.roll] for p in poses],
+                     dtype=np.float64).reshape(-1, 6)
+    return stamps, array

@@ -1,0 +1,42 @@
+"""Pydantic models of every message, file and result of rsucal (DESIGN.md); imports nothing of ours."""
+
+from schemas.common import Box, CameraIntrinsics, LocalOrigin, VehicleProfile
+from schemas.files import GroundTruth, GroundTruthFrame
+from schemas.messages import DetectionFrame, V2xAccuracies, V2xPosition, VehiclePose
+from schemas.results import (
+    CalibrationResult,
+    CalibrationStatus,
+    CameraPosition,
+    ChangeInfo,
+    GroundPlane,
+    JobSummary,
+    Provenance,
+    Quality,
+    ReferenceFrame,
+    Uncertainty,
+    Verdict,
+)
+
+__all__ = [
+    "Box",
+    "CalibrationResult",
+    "CalibrationStatus",
+    "CameraIntrinsics",
+    "CameraPosition",
+    "ChangeInfo",
+    "DetectionFrame",
+    "GroundPlane",
+    "GroundTruth",
+    "GroundTruthFrame",
+    "JobSummary",
+    "LocalOrigin",
+    "Provenance",
+    "Quality",
+    "ReferenceFrame",
+    "Uncertainty",
+    "V2xAccuracies",
+    "V2xPosition",
+    "VehiclePose",
+    "VehicleProfile",
+    "Verdict",
+]

@@ -1,0 +1,113 @@
+"""Building blocks shared by messages, files and results: strict base model, boxes, intrinsics, vehicle.
+
+Every model forbids unknown fields, rejects NaN/inf and validates strictly (no "12" for 12), so a
+decoder error always names the offending field (pydantic's `loc`).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+# 1970..2200 in ns: rejects seconds or milliseconds passed where nanoseconds belong.
+STAMP_NS_MIN = 0
+STAMP_NS_MAX = 7_258_118_400_000_000_000
+
+StampNs = Annotated[int, Field(ge=STAMP_NS_MIN, le=STAMP_NS_MAX, description="ns since the Unix epoch")]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Identifier = Annotated[
+    str,
+    Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$", description="safe in a Zenoh key"),
+]
+Vec3 = tuple[Finite, Finite, Finite]
+Matrix3 = tuple[Vec3, Vec3, Vec3]
+
+
+class StrictModel(BaseModel):
+    """Base of every rsucal model: frozen, no unknown fields, no NaN/inf; decode external data with `decode`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class Box(StrictModel):
+    """One detected box in pixels (x right, y down) with the detector's class id and score."""
+
+    x1: Finite
+    y1: Finite
+    x2: Finite
+    y2: Finite
+    cls: int = Field(default=4, ge=0, le=1000, description="class id; toolbox ids 4 car, 5 truck, 6 van, 7 bus")
+    score: float = Field(default=1.0, ge=0.0, le=1.0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Box:
+        if not self.x2 > self.x1:
+            raise ValueError(f"x2 = {self.x2} must be greater than x1 = {self.x1}")
+        if not self.y2 > self.y1:
+            raise ValueError(f"y2 = {self.y2} must be greater than y1 = {self.y1}")
+        return self
+
+
+class CameraIntrinsics(StrictModel):
+    """Pinhole + OpenCV distortion; YAML keys exactly width, height, fx, fy, cx, cy, dist."""
+
+    width: int = Field(gt=0, le=20000, description="image width, px")
+    height: int = Field(gt=0, le=20000, description="image height, px")
+    fx: float = Field(gt=0.0, le=1e6, allow_inf_nan=False, description="focal length x, px")
+    fy: float = Field(gt=0.0, le=1e6, allow_inf_nan=False, description="focal length y, px")
+    cx: float = Field(ge=-1e5, le=1e5, allow_inf_nan=False, description="principal point x, px")
+    cy: float = Field(ge=-1e5, le=1e5, allow_inf_nan=False, description="principal point y, px")
+    dist: tuple[Finite, Finite, Finite, Finite, Finite] = Field(
+        default=(0.0, 0.0, 0.0, 0.0, 0.0), description="OpenCV distortion [k1, k2, p1, p2, k3]"
+    )
+
+
+class VehicleProfile(StrictModel):
+    """Calibration vehicle body: box [0, L] x [0, W] x [0, H] in the vehicle box frame (x fwd, y left, z up,
+    origin rear-right-bottom); `imu_offset` is the pose reference point in that frame (m)."""
+
+    length: float = Field(gt=0.0, le=30.0, allow_inf_nan=False, description="m")
+    width: float = Field(gt=0.0, le=5.0, allow_inf_nan=False, description="m")
+    height: float = Field(gt=0.0, le=6.0, allow_inf_nan=False, description="m")
+    imu_offset: Vec3 = Field(description="pose reference point [x, y, z] in the vehicle box frame, m")
+
+
+class LocalOrigin(StrictModel):
+    """The UTM point subtracted inside the pipeline for numerical stability (DESIGN: frames)."""
+
+    crs: str = Field(pattern=r"^EPSG:\d{4,5}$", description="e.g. EPSG:32632")
+    x: Finite
+    y: Finite
+    z: Finite = 0.0
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def decode_json(model: type[M], raw: bytes | str) -> M:
+    """Validate a JSON payload strictly (no "12" for 12, no true for 1); raises pydantic.ValidationError."""
+    return model.model_validate_json(raw, strict=True)
+
+
+def decode_mapping(model: type[M], data: Any) -> M:
+    """Validate already-parsed data (e.g. YAML) with the same strict JSON rules as `decode_json`.
+
+    Going through JSON keeps one set of rules for bus and files: lists are accepted for fixed-length
+    arrays, but strings and booleans never pass for numbers.
+    """
+    try:
+        raw = json.dumps(data, allow_nan=True)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"not JSON-representable data: {err}") from err
+    return decode_json(model, raw)
+
+
+def describe_validation_error(err: ValidationError) -> str:
+    """One line per problem, each starting with the dotted field path: 'boxes.0.x1: ...'."""
+    lines = []
+    for item in err.errors(include_url=False):
+        where = ".".join(str(part) for part in item["loc"]) or "(root)"
+        lines.append(f"{where}: {item['msg']}")
+    return "; ".join(lines)

@@ -1,0 +1,158 @@
+"""What rsucal publishes and persists: the calibration result and the per-camera status (DESIGN.md)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from schemas.common import (
+    CameraIntrinsics,
+    Finite,
+    Identifier,
+    Matrix3,
+    StampNs,
+    StrictModel,
+    Vec3,
+)
+
+SCHEMA_VERSION = "1.0"
+
+Covariance6 = tuple[
+    tuple[Finite, Finite, Finite, Finite, Finite, Finite],
+    tuple[Finite, Finite, Finite, Finite, Finite, Finite],
+    tuple[Finite, Finite, Finite, Finite, Finite, Finite],
+    tuple[Finite, Finite, Finite, Finite, Finite, Finite],
+    tuple[Finite, Finite, Finite, Finite, Finite, Finite],
+    tuple[Finite, Finite, Finite, Finite, Finite, Finite],
+]
+
+
+class ReferenceFrame(StrictModel):
+    """The frame R, t refer to: UTM (crs) minus `origin` (m)."""
+
+    crs: str = Field(pattern=r"^EPSG:\d{4,5}$")
+    origin: Vec3
+
+
+class CameraPosition(StrictModel):
+    """Camera centre in absolute UTM (m) and WGS84 (deg, ellipsoidal height m)."""
+
+    utm: Vec3
+    lat: float = Field(ge=-90.0, le=90.0, allow_inf_nan=False)
+    lon: float = Field(ge=-180.0, le=180.0, allow_inf_nan=False)
+    alt: Finite
+
+
+class GroundPlane(StrictModel):
+    """Ground plane in the local frame: points p with normal . p = offset (normal unit, pointing up)."""
+
+    normal: Vec3
+    offset: Finite
+
+
+class Uncertainty(StrictModel):
+    """6x6 covariance of [rotation vector (rad, local frame), camera position (m, local frame)]."""
+
+    covariance: Covariance6
+    position_std_m: float = Field(ge=0.0, allow_inf_nan=False)
+    rotation_std_deg: float = Field(ge=0.0, allow_inf_nan=False)
+
+
+class Quality(StrictModel):
+    """Paper Sec. IV-B metrics on the merged calibration-vehicle tracks, plus fit statistics."""
+
+    delta_p_mean_m: float = Field(ge=0.0, allow_inf_nan=False)
+    delta_p_max_m: float = Field(ge=0.0, allow_inf_nan=False)
+    e_mean_pct: float = Field(ge=0.0, allow_inf_nan=False)
+    e_max_pct: float = Field(ge=0.0, allow_inf_nan=False)
+    reprojection_rmse_px: float = Field(ge=0.0, allow_inf_nan=False)
+    correspondences: int = Field(ge=0)
+    tracks: int = Field(ge=0)
+    traversals: int = Field(ge=0)
+
+
+class Verdict(StrictModel):
+    """Accepted or refused, always with the reasons (a refusal is an answer, not an exception)."""
+
+    status: Literal["accepted", "refused"]
+    reasons: list[str] = Field(default_factory=list)
+
+    @property
+    def is_accepted(self) -> bool:
+        return self.status == "accepted"
+
+
+class ChangeInfo(StrictModel):
+    """How this result differs from the previously published one."""
+
+    previous_result_id: str
+    shift_m: float = Field(ge=0.0, allow_inf_nan=False)
+    shift_deg: float = Field(ge=0.0, allow_inf_nan=False)
+    moved: bool
+
+
+class Provenance(StrictModel):
+    """Where a result came from."""
+
+    window_start_ns: StampNs | None = None
+    window_end_ns: StampNs | None = None
+    recordings: list[str] = Field(default_factory=list)
+    station_id: int | None = Field(default=None, ge=0, le=4_294_967_295)
+    software_version: str = ""
+    config_hash: str = ""
+
+
+class CalibrationResult(StrictModel):
+    """One camera's geo-referenced extrinsic: X_cam = R @ (X_utm - origin) + t (DESIGN.md)."""
+
+    schema_version: str = SCHEMA_VERSION
+    rsu_id: Identifier
+    camera_id: Identifier
+    result_id: str = Field(min_length=1, max_length=128)
+    created_at_ns: StampNs
+    frame: ReferenceFrame
+    R: Matrix3 | None = Field(default=None, description="world(local)->camera rotation")
+    t: Vec3 | None = Field(default=None, description="world(local)->camera translation, m")
+    camera_position: CameraPosition | None = None
+    orientation_wxyz: tuple[Finite, Finite, Finite, Finite] | None = Field(
+        default=None, description="camera->world rotation as a unit quaternion [w, x, y, z]"
+    )
+    intrinsics: CameraIntrinsics
+    ground_plane: GroundPlane | None = None
+    uncertainty: Uncertainty | None = None
+    quality: Quality | None = None
+    verdict: Verdict
+    change: ChangeInfo | None = None
+    provenance: Provenance = Field(default_factory=Provenance)
+
+    @model_validator(mode="after")
+    def _accepted_has_pose(self) -> CalibrationResult:
+        if self.verdict.status == "accepted" and (self.R is None or self.t is None):
+            raise ValueError("an accepted result needs R and t")
+        return self
+
+
+class JobSummary(StrictModel):
+    """The last calibration job of a camera."""
+
+    job_id: str
+    started_ns: StampNs
+    finished_ns: StampNs | None = None
+    duration_s: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
+    verdict: Verdict | None = None
+
+
+class CalibrationStatus(StrictModel):
+    """What `.../calibration/status` answers for one camera."""
+
+    rsu_id: Identifier
+    camera_id: Identifier
+    state: Literal["idle", "collecting", "calibrating", "calibrated", "refused"]
+    traversals: int = Field(ge=0)
+    traversals_needed: int = Field(ge=2)
+    last_job: JobSummary | None = None
+    current_result_id: str | None = None
+    verified_at_ns: StampNs | None = None
+    counters: dict[str, int] = Field(default_factory=dict)
+    updated_at_ns: StampNs
