@@ -1,0 +1,23 @@
+"""The README's first two commands are what a newcomer runs; CI must run the second one verbatim."""
+
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _readme_commands() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    block = text.split("```bash", 1)[1].split("```", 1)[0]
+    return [line.strip() for line in block.strip().splitlines() if line.strip()]
+
+
+def test_readme_opens_with_main_job_then_tests() -> None:
+    main_job, tests = _readme_commands()[:2]
+    assert "rsucal demo" in main_job or "rsucal simulate" in main_job
+    assert "pytest" in tests
+
+
+def test_ci_runs_the_readme_test_command_verbatim() -> None:
+    test_command = _readme_commands()[1]
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert test_command in ci, "the README's test command must appear verbatim in .ci/run"
