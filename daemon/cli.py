@@ -1,4 +1,4 @@
-"""`rsucal` subcommands: argument parsing and exit codes only; every command is a plain call into the packages.
+"""`rsucal` subcommands: argument parsing and exit codes only; each command is a plain call into the packages.
 
 Exit codes: 0 success, 2 bad input (the message names file and field), 3 calibration refused.
 """
@@ -31,7 +31,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from pipeline.simulate import PRESETS, simulate
 
     if args.preset not in PRESETS:
-        raise InputError("--preset", f"unknown preset {args.preset!r}; choose one of {', '.join(sorted(PRESETS))}")
+        raise InputError(
+            "--preset", f"unknown preset {args.preset!r}; choose one of {', '.join(sorted(PRESETS))}"
+        )
     result = simulate(args.preset, seed=args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -43,8 +45,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         written.append(write_preview(result, Path(args.preview)))
     frames = sum(len(f) for f in result.detections.values())
     boxes = sum(len(fr.boxes) for f in result.detections.values() for fr in f)
-    print(f"preset {args.preset} seed {args.seed}: {len(result.cameras)} camera(s), {frames} frames, "
-          f"{boxes} boxes, {len(result.poses)} vehicle poses, {result.traffic_count} other vehicles")
+    print(
+        f"preset {args.preset} seed {args.seed}: {len(result.cameras)} camera(s), {frames} frames, "
+        f"{boxes} boxes, {len(result.poses)} vehicle poses, {result.traffic_count} other vehicles"
+    )
     for path in written:
         print(f"  wrote {path}")
     return EXIT_OK
@@ -69,14 +73,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    sim = sub.add_parser("simulate", help="generate a seeded RSU scenario: MCAP, toolbox YAML pair, ground truth")
+    sim = sub.add_parser(
+        "simulate", help="generate a seeded RSU scenario: MCAP, toolbox YAML pair, ground truth"
+    )
     sim.add_argument("--preset", default="sil-west", help="scenario preset (default sil-west)")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sim.add_argument("--out", required=True, help="output directory")
     sim.add_argument("--preview", help="write a PNG of one busy frame here")
     sim.set_defaults(func=_cmd_simulate)
 
-    ev = sub.add_parser("evaluate", help="score a calibration against simulator ground truth (paper Sec. IV-B)")
+    ev = sub.add_parser(
+        "evaluate", help="score a calibration against simulator ground truth (paper Sec. IV-B)"
+    )
     ev.add_argument("--calib", required=True, help="CalibrationResult JSON")
     ev.add_argument("--ground-truth", required=True, help="ground_truth.json of the same camera")
     ev.add_argument("--json", action="store_true", help="print JSON instead of a table")

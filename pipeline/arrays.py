@@ -45,7 +45,9 @@ def check_shape(array: Any, spec: str, name: str) -> None:
         raise ShapeError(f"{name}: expected a numpy array ({spec}), got {type(array).__name__}")
     dims = [d.strip() for d in spec.split(",")] if spec else []
     expected = "(" + ", ".join(dims) + (",)" if len(dims) == 1 else ")")
-    if array.ndim != len(dims) or any(d.isdigit() and int(d) != n for d, n in zip(dims, array.shape, strict=True)):
+    if array.ndim != len(dims) or any(
+        d.isdigit() and int(d) != n for d, n in zip(dims, array.shape, strict=True)
+    ):
         raise ShapeError(f"{name}: expected {expected}, got {tuple(array.shape)}")
 
 

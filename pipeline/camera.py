@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation as SciRotation
 
 from pipeline.arrays import FloatArray, Pixels, Points3, Rotation, Vec3, check_shape
 from schemas.common import CameraIntrinsics
@@ -31,7 +32,9 @@ class CameraModel:
         K = np.array(
             [[intrinsics.fx, 0.0, intrinsics.cx], [0.0, intrinsics.fy, intrinsics.cy], [0.0, 0.0, 1.0]]
         )
-        return CameraModel(K, np.array(intrinsics.dist, dtype=np.float64), intrinsics.width, intrinsics.height)
+        return CameraModel(
+            K, np.array(intrinsics.dist, dtype=np.float64), intrinsics.width, intrinsics.height
+        )
 
     @property
     def has_distortion(self) -> bool:
@@ -82,12 +85,17 @@ def undistort_pixels(pixels: Pixels, camera: CameraModel) -> FloatArray:
     check_shape(pixels, "N,2", name="pixels")
     if len(pixels) == 0:
         return np.zeros((0, 2))
-    if not camera.has_distortion:
-        K = camera.K
-        return np.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
     K = camera.K
-    target = np.stack([(pixels[:, 0] - K[0, 2] - K[0, 1] * (pixels[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
-                       (pixels[:, 1] - K[1, 2]) / K[1, 1]], axis=1)
+    # Inverse of K including its skew K[0, 1], as project_points_cam applies it.
+    target = np.stack(
+        [
+            (pixels[:, 0] - K[0, 2] - K[0, 1] * (pixels[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
+            (pixels[:, 1] - K[1, 2]) / K[1, 1],
+        ],
+        axis=1,
+    )
+    if not camera.has_distortion:
+        return target
     return _invert_distortion(target, camera.dist)
 
 
@@ -142,8 +150,9 @@ def rotation_from_ypr(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> F
 def camera_rotation_from_view(yaw: float, pitch_down: float, roll: float = 0.0) -> Rotation:
     """R_cam_from_world for a camera whose optical axis points at azimuth `yaw` (rad from east, ccw),
     tilted `pitch_down` (rad) below the horizon and rolled `roll` (rad, clockwise in the image)."""
-    forward = np.array([math.cos(pitch_down) * math.cos(yaw), math.cos(pitch_down) * math.sin(yaw),
-                        -math.sin(pitch_down)])
+    forward = np.array(
+        [math.cos(pitch_down) * math.cos(yaw), math.cos(pitch_down) * math.sin(yaw), -math.sin(pitch_down)]
+    )
     right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
     down = np.cross(forward, right)
     # Roll turns the image axes about the optical axis.
@@ -173,8 +182,8 @@ def rotation_from_rvec(rvec: FloatArray) -> Rotation:
 
 def rvec_from_rotation(R: Rotation) -> FloatArray:
     """Rotation matrix (3, 3) -> Rodrigues vector (3,)."""
-    rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
-    return np.asarray(rvec, dtype=np.float64).reshape(3)
+    # Not cv2.Rodrigues: it returns exactly zero for any rotation below 1e-5 rad (sin theta < 1e-5).
+    return np.asarray(SciRotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec(), dtype=np.float64)
 
 
 def quaternion_wxyz_from_rotation(R: Rotation) -> FloatArray:

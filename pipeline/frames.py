@@ -25,7 +25,9 @@ def utm_epsg_for(lat_deg: float, lon_deg: float) -> str:
     """The standard WGS84/UTM zone code for a point, e.g. 'EPSG:32632' (no Norway/Svalbard exceptions)."""
     if not (-80.0 <= lat_deg <= 84.0):
         raise InputError("lat", f"lat = {lat_deg} outside the UTM range [-80, 84]")
-    zone = min(60, int(math.floor((lon_deg + 180.0) / 6.0)) + 1)
+    if not (-180.0 <= lon_deg <= 180.0):
+        raise InputError("lon", f"lon = {lon_deg} outside [-180, 180]")
+    zone = min(60, math.floor((lon_deg + 180.0) / 6.0) + 1)
     return f"EPSG:{32600 + zone if lat_deg >= 0 else 32700 + zone}"
 
 
@@ -61,8 +63,10 @@ class UtmFrame:
         factors = self._proj.get_factors(np.asarray(lon_deg, float), np.asarray(lat_deg, float))
         return np.asarray(factors.meridian_convergence, dtype=np.float64)
 
-    def yaw_from_heading(self, heading_deg: FloatArray, lat_deg: FloatArray, lon_deg: FloatArray) -> FloatArray:
-        """True-north clockwise heading (deg) -> grid-east counter-clockwise yaw (rad), wrapped to (-pi, pi]."""
+    def yaw_from_heading(
+        self, heading_deg: FloatArray, lat_deg: FloatArray, lon_deg: FloatArray
+    ) -> FloatArray:
+        """True-north clockwise heading (deg) -> grid-east counter-clockwise yaw (rad) in [-pi, pi]."""
         grid_azimuth_deg = np.asarray(heading_deg, float) - self.convergence_deg(lat_deg, lon_deg)
         yaw = np.radians(90.0 - grid_azimuth_deg)
         return cast(FloatArray, np.angle(np.exp(1j * yaw)))
@@ -70,13 +74,17 @@ class UtmFrame:
     def heading_from_yaw(self, yaw: FloatArray, lat_deg: FloatArray, lon_deg: FloatArray) -> FloatArray:
         """Inverse of `yaw_from_heading`: grid yaw (rad) -> true heading (deg) in [0, 360)."""
         grid_azimuth_deg = 90.0 - np.degrees(np.asarray(yaw, float))
-        return cast(FloatArray, np.mod(grid_azimuth_deg + self.convergence_deg(lat_deg, lon_deg), 360.0))
+        heading_deg = np.mod(grid_azimuth_deg + self.convergence_deg(lat_deg, lon_deg), 360.0)
+        # mod of a tiny negative number rounds to 360.0, which V2xPosition rightly rejects.
+        return cast(FloatArray, np.where(heading_deg >= 360.0, 0.0, heading_deg))
 
 
 def pose_from_v2x(message: V2xPosition, frame: UtmFrame) -> VehiclePose:
     """V2X position (WGS84, true heading) -> VehiclePose in UTM with grid yaw; pitch/roll 0 when absent."""
     east, north = frame.to_utm(np.array([message.lat]), np.array([message.lon]))
-    yaw = frame.yaw_from_heading(np.array([message.heading_deg]), np.array([message.lat]), np.array([message.lon]))
+    yaw = frame.yaw_from_heading(
+        np.array([message.heading_deg]), np.array([message.lat]), np.array([message.lon])
+    )
     if not (np.isfinite(east[0]) and np.isfinite(north[0])):
         raise InputError("v2x", f"lat/lon = {message.lat}, {message.lon} not representable in {frame.crs}")
     return VehiclePose(
@@ -115,12 +123,14 @@ def v2x_from_pose(
 
 def local_points(points_utm: Points3, origin: LocalOrigin) -> Points3:
     """Absolute UTM (N, 3) -> local frame by subtracting the origin (float64 throughout)."""
-    return np.asarray(points_utm, dtype=np.float64) - np.array([origin.x, origin.y, origin.z])
+    return cast(Points3, np.asarray(points_utm, dtype=np.float64) - np.array([origin.x, origin.y, origin.z]))
 
 
 def poses_to_array(poses: list[VehiclePose], origin: LocalOrigin) -> tuple[Stamps, PoseArray]:
     """VehiclePose list -> (stamps (N,) int64, PoseArray (N, 6) in the local frame)."""
     stamps = np.array([p.stamp_ns for p in poses], dtype=np.int64)
-    array = np.array([[p.x - origin.x, p.y - origin.y, p.z - origin.z, p.yaw, p.pitch, p.roll] for p in poses],
-                     dtype=np.float64).reshape(-1, 6)
+    array = np.array(
+        [[p.x - origin.x, p.y - origin.y, p.z - origin.z, p.yaw, p.pitch, p.roll] for p in poses],
+        dtype=np.float64,
+    ).reshape(-1, 6)
     return stamps, array

@@ -31,10 +31,17 @@ class GroundPlaneFit:
         return np.asarray(hits, dtype=np.float64)
 
 
+# The tilt about the track's axis is only observed when the track's cross-track spread clearly exceeds its
+# out-of-plane scatter (GNSS height noise). Otherwise PCA's least-variance direction is noise and can even be
+# horizontal: a straight pass with 3 cm height noise and 1 cm lateral wander gives a vertical "plane".
+_MIN_ACROSS_OVER_SCATTER = 3.0
+_MAX_ROAD_TILT_RAD = np.radians(30.0)  # steeper than any road: the "plane" is the track's noise
+
+
 def fit_ground_plane(track_points: Points3, min_spread_m: float = 1.0) -> GroundPlaneFit:
     """Least-squares plane through the vehicle's ground track (N, 3) by PCA: the normal is the direction of
-    least variance. Raises DegenerateGeometry when the track spans less than `min_spread_m` in two directions
-    (a single point or a straight line does not fix a plane)."""
+    least variance. A (nearly) straight track does not fix the tilt about itself: the road is then assumed
+    level across the track. Raises DegenerateGeometry when the track spans less than `min_spread_m`."""
     check_shape(track_points, "N,3", name="track_points")
     if len(track_points) < 3:
         raise DegenerateGeometry(f"ground plane: {len(track_points)} points, need at least 3")
@@ -44,8 +51,9 @@ def fit_ground_plane(track_points: Points3, min_spread_m: float = 1.0) -> Ground
     normal = vt[2]
     if spread[0] < min_spread_m:
         raise DegenerateGeometry(f"ground plane: track spans only {spread[0]:.2f} m")
-    if spread[1] < 1e-3 * spread[0]:
-        # A perfectly straight track: the plane's tilt about the track is unobservable; assume the road is
+    is_line = spread[1] < max(1e-3 * spread[0], _MIN_ACROSS_OVER_SCATTER * spread[2])
+    if is_line or abs(normal[2]) < np.cos(_MAX_ROAD_TILT_RAD):
+        # A (nearly) straight track: the plane's tilt about the track is unobservable; assume the road is
         # level across its width (normal orthogonal to the track and to horizontal).
         along = vt[0]
         across = np.cross(along, np.array([0.0, 0.0, 1.0]))

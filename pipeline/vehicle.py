@@ -23,7 +23,7 @@ def body_points_to_world(poses: PoseArray, points_body: FloatArray, profile: Veh
     check_shape(points_body, "K,3", name="points_body")
     R = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
     relative = points_body - np.asarray(profile.imu_offset, dtype=np.float64)
-    return np.einsum("nij,kj->nki", R, relative) + poses[:, None, :3]
+    return np.asarray(np.einsum("nij,kj->nki", R, relative) + poses[:, None, :3], dtype=np.float64)
 
 
 def body_corners_body_frame(profile: VehicleProfile) -> FloatArray:
@@ -40,12 +40,16 @@ def body_corners(poses: PoseArray, profile: VehicleProfile) -> FloatArray:
 
 
 def footprint_corners(poses: PoseArray, profile: VehicleProfile) -> Corners:
-    """World positions of the 4 footprint corners (rear-right, front-right, front-left, rear-left): (N, 4, 3)."""
+    """World positions of the 4 footprint corners, rear-right, front-right, front-left, rear-left:
+    (N, 4, 3)."""
     return body_points_to_world(poses, body_corners_body_frame(profile)[:4], profile)
 
 
 def body_centers(poses: PoseArray, profile: VehicleProfile) -> Points3:
-    """World position of the body box's geometric centre for every pose: (N, 3) (paper III-D correspondence)."""
+    """World position of the body box's geometric centre for every pose: (N, 3).
+
+    The paper's box-centre correspondence (Sec. III-D).
+    """
     centre = np.array([[profile.length / 2.0, profile.width / 2.0, profile.height / 2.0]])
     return body_points_to_world(poses, centre, profile)[:, 0, :]
 
@@ -58,4 +62,4 @@ def reference_from_center_footprint(
     offset = np.asarray(profile.imu_offset, dtype=np.float64) - np.array(
         [profile.length / 2.0, profile.width / 2.0, 0.0]
     )
-    return centers + np.einsum("nij,j->ni", R, offset)
+    return np.asarray(centers + np.einsum("nij,j->ni", R, offset), dtype=np.float64)

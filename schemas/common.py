@@ -11,12 +11,15 @@ from typing import Annotated, Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-# 1970..2200 in ns: rejects seconds or milliseconds passed where nanoseconds belong.
-STAMP_NS_MIN = 0
+# 2000..2200 in ns: rejects seconds, milliseconds or microseconds passed where nanoseconds belong (a stamp
+# in seconds read as ns falls in January 1970) and negative or overflowed stamps.
+STAMP_NS_MIN = 946_684_800_000_000_000
 STAMP_NS_MAX = 7_258_118_400_000_000_000
 
 StampNs = Annotated[int, Field(ge=STAMP_NS_MIN, le=STAMP_NS_MAX, description="ns since the Unix epoch")]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+# Boxes may reach past the image border, but never by more than any image is wide.
+PixelCoord = Annotated[float, Field(ge=-1e5, le=1e5, allow_inf_nan=False, description="px")]
 Identifier = Annotated[
     str,
     Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$", description="safe in a Zenoh key"),
@@ -26,7 +29,7 @@ Matrix3 = tuple[Vec3, Vec3, Vec3]
 
 
 class StrictModel(BaseModel):
-    """Base of every rsucal model: frozen, no unknown fields, no NaN/inf; decode external data with `decode`."""
+    """Base of every rsucal model: frozen, no unknown fields, no NaN/inf; decode with `decode_json`."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -34,11 +37,13 @@ class StrictModel(BaseModel):
 class Box(StrictModel):
     """One detected box in pixels (x right, y down) with the detector's class id and score."""
 
-    x1: Finite
-    y1: Finite
-    x2: Finite
-    y2: Finite
-    cls: int = Field(default=4, ge=0, le=1000, description="class id; toolbox ids 4 car, 5 truck, 6 van, 7 bus")
+    x1: PixelCoord
+    y1: PixelCoord
+    x2: PixelCoord
+    y2: PixelCoord
+    cls: int = Field(
+        default=4, ge=0, le=1000, description="class id; toolbox ids 4 car, 5 truck, 6 van, 7 bus"
+    )
     score: float = Field(default=1.0, ge=0.0, le=1.0, allow_inf_nan=False)
 
     @model_validator(mode="after")

@@ -4,15 +4,27 @@ from __future__ import annotations
 
 from pydantic import Field
 
-from schemas.common import CameraIntrinsics, Identifier, Matrix3, StampNs, StrictModel, Vec3
+from schemas.common import CameraIntrinsics, Finite, Identifier, Matrix3, StampNs, StrictModel, Vec3
 
 
 class GroundTruthFrame(StrictModel):
-    """One camera frame: which of its boxes (index into DetectionFrame.boxes) is the calibration vehicle."""
+    """One camera frame: which of its boxes (index into DetectionFrame.boxes) is the calibration vehicle.
+
+    `footprint_local` (set with `calib_box`) is the vehicle's true footprint at the frame's stamp: corners
+    rear-right, front-right, front-left, rear-left in the local frame (UTM minus `GroundTruth.origin`), m.
+    """
 
     stamp_ns: StampNs
     calib_box: int | None = Field(default=None, ge=0)
-    traversal: int | None = Field(default=None, ge=0, description="traversal index of the vehicle, if in view")
+    traversal: int | None = Field(
+        default=None, ge=0, description="traversal index of the vehicle, if in view"
+    )
+    footprint_local: tuple[Vec3, Vec3, Vec3, Vec3] | None = Field(
+        default=None, description="true footprint RR, FR, FL, RL at stamp_ns, local frame, m"
+    )
+    box: tuple[Finite, Finite, Finite, Finite] | None = Field(
+        default=None, description="x1, y1, x2, y2 (px) of the calib box as published (with detector jitter)"
+    )
 
 
 class GroundTruth(StrictModel):

@@ -44,7 +44,8 @@ class V2xPosition(StrictModel):
 
 
 class VehiclePose(StrictModel):
-    """Pose of the vehicle reference point in UTM (m) with yaw from grid east, ccw; R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    """Pose of the vehicle reference point in UTM (m); yaw from grid east, ccw (rad);
+    orientation R = Rz(yaw) Ry(pitch) Rx(roll)."""
 
     stamp_ns: StampNs
     x: Finite

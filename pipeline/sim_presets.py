@@ -1,0 +1,499 @@
+"""Scenario configuration of the simulator (everything tunable, frozen) and the named presets.
+
+A ScenarioConfig is plain data: the site (UTM zone and origin), the road layout, ground, occluders,
+cameras, the calibration vehicle's drive, the other traffic, the vehicle's pose reporting and the
+detector model. `dataclasses.replace` derives variants (the tests shrink presets that way).
+Units: metres, seconds, degrees where the name says `_deg`, pixels for image quantities.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+from schemas.common import VehicleProfile
+
+
+@dataclass(frozen=True, slots=True)
+class SiteSpec:
+    """Where the junction centre (the local origin) is: UTM zone (EPSG code), easting, northing, height."""
+
+    name: str
+    crs: str
+    east_m: float
+    north_m: float
+    alt_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class ArmSpec:
+    """One road leaving the junction: outward direction (deg from grid east, ccw) and an optional bend
+    (`bend_deg`, positive = left, on `bend_radius_m`) starting `bend_start_m` from the centre."""
+
+    name: str
+    angle_deg: float
+    bend_start_m: float = 0.0
+    bend_deg: float = 0.0
+    bend_radius_m: float = 200.0
+
+
+@dataclass(frozen=True, slots=True)
+class RoadSpec:
+    """Junction layout; two arms make a plain road. Arms are `arm_length_m` long (path length from the
+    centre); the far connectors run on a ring `connector_clearance_m` beyond the furthest arm end."""
+
+    arms: tuple[ArmSpec, ...]
+    lanes_per_direction: int = 1
+    lane_width_m: float = 3.5
+    arm_length_m: float = 300.0
+    stop_line_margin_m: float = 4.0
+    connector_clearance_m: float = 40.0
+
+
+@dataclass(frozen=True, slots=True)
+class BumpSpec:
+    """A smooth Gaussian bump (or dip, negative height) in the ground."""
+
+    x_m: float
+    y_m: float
+    height_m: float
+    sigma_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class GroundSpec:
+    """Ground z = slope . (x, y) + bumps (local frame)."""
+
+    slope: tuple[float, float] = (0.0, 0.0)
+    bumps: tuple[BumpSpec, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class OccluderSpec:
+    """A cuboid obstacle centred at (x, y) on the ground; its bottom `base_height_m` above the ground."""
+
+    kind: str
+    x_m: float
+    y_m: float
+    length_m: float
+    width_m: float
+    height_m: float
+    base_height_m: float = 0.0
+    yaw_deg: float = 0.0
+
+
+def pole(x_m: float, y_m: float, height_m: float = 8.0, width_m: float = 0.3) -> tuple[OccluderSpec, ...]:
+    """A lamp or signal pole."""
+    return (OccluderSpec("pole", x_m, y_m, width_m, width_m, height_m),)
+
+
+def tree(x_m: float, y_m: float, crown_m: float = 4.5, trunk_m: float = 2.5) -> tuple[OccluderSpec, ...]:
+    """A tree: a trunk and a crown box on top of it."""
+    return (
+        OccluderSpec("trunk", x_m, y_m, 0.45, 0.45, trunk_m),
+        OccluderSpec("crown", x_m, y_m, crown_m, crown_m, crown_m * 1.1, base_height_m=trunk_m),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class CameraSpec:
+    """One RSU camera: mast position (x, y), height above the ground there, viewing direction (optical
+    axis azimuth from grid east ccw, tilt below the horizon, roll) and OpenCV intrinsics."""
+
+    camera_id: str
+    x_m: float
+    y_m: float
+    height_m: float
+    yaw_deg: float
+    pitch_down_deg: float
+    roll_deg: float = 0.0
+    width: int = 1920
+    height: int = 1200
+    fx: float = 1400.0
+    fy: float | None = None  # None: fx (square pixels)
+    principal_offset_px: tuple[float, float] = (0.0, 0.0)  # (cx, cy) minus the image centre
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def look_at(
+    camera_id: str,
+    x_m: float,
+    y_m: float,
+    height_m: float,
+    target: tuple[float, float],
+    width: int = 1920,
+    height: int = 1200,
+    fx: float = 1400.0,
+    principal_offset_px: tuple[float, float] = (0.0, 0.0),
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0),
+) -> CameraSpec:
+    """A camera at (x, y, height) aimed at a ground point `target` (x, y): yaw and tilt computed."""
+    dx, dy = target[0] - x_m, target[1] - y_m
+    yaw = math.degrees(math.atan2(dy, dx))
+    pitch = math.degrees(math.atan2(height_m, math.hypot(dx, dy)))
+    return CameraSpec(
+        camera_id,
+        x_m,
+        y_m,
+        height_m,
+        round(yaw, 3),
+        round(pitch, 3),
+        width=width,
+        height=height,
+        fx=fx,
+        principal_offset_px=principal_offset_px,
+        dist=dist,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class DriveSpec:
+    """The calibration vehicle's drive: one route ("A>B", arm names) per traversal, joined out of view.
+
+    Speeds and accelerations are drawn per traversal from the (low, high) ranges; on each traversal it
+    stops at the stop line with `stop_probability` (`stops` overrides per traversal). With `elsewhere`
+    it never comes near the site (the no-target case)."""
+
+    routes: tuple[str, ...] = ("W>E", "S>W", "E>S")
+    stops: tuple[bool, ...] | None = None
+    stop_probability: float = 0.5
+    stop_dwell_s: tuple[float, float] = (2.0, 5.0)
+    cruise_mps: tuple[float, float] = (8.0, 14.0)
+    accel_mps2: tuple[float, float] = (1.5, 2.5)
+    decel_mps2: tuple[float, float] = (2.0, 3.0)
+    connector_speed_mps: float = 16.0
+    followers_per_traversal: tuple[int, int] = (1, 2)  # hard distractors on the vehicle's own route
+    follower_gap_s: tuple[float, float] = (1.5, 4.0)
+    elsewhere: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class TrafficSpec:
+    """Other vehicles: `count` of them, entering inbound lanes as a Poisson process with a minimum headway.
+
+    class_mix = shares of car, truck, van, bus (toolbox classes 4, 5, 6, 7)."""
+
+    count: int = 80
+    class_mix: tuple[float, float, float, float] = (0.72, 0.07, 0.15, 0.06)
+    straight_share: float = 0.6
+    min_headway_s: float = 1.5
+    stop_probability: float = 0.25
+    stop_dwell_s: tuple[float, float] = (0.5, 3.0)
+    lead_in_s: float = 45.0  # vehicles enter this long before the recording starts: a full scene at t=0
+
+
+@dataclass(frozen=True, slots=True)
+class PoseSpec:
+    """How the calibration vehicle reports its pose (GNSS/RTK + IMU): rate, noise, drift, dropouts, clock."""
+
+    rate_hz: float = 50.0
+    timing_jitter_s: float = 0.001
+    position_sigma_m: float = 0.0  # white noise on x and y
+    height_sigma_m: float = 0.0
+    drift_m: float = 0.0  # RMS of a slow smooth drift on x, y (periods of minutes)
+    yaw_sigma_rad: float = 0.0
+    speed_sigma_mps: float = 0.0
+    dropouts: int = 0  # gaps without any pose
+    dropout_s: tuple[float, float] = (0.2, 1.0)
+    clock_offset_ns: int = 0  # vehicle clock minus camera clock, added to every reported stamp
+
+
+@dataclass(frozen=True, slots=True)
+class DetectorSpec:
+    """The RSU detector: frame rate and what it gets wrong (box jitter, misses, false positives)."""
+
+    fps: float = 10.0
+    frame_jitter_s: float = 0.0015
+    # Edge noise std (px) of a box `jitter_reference_px` tall; a detector's edge error grows with the
+    # object's size, so the std scales with the box's width (x edges) / height (y edges), floored at half.
+    box_jitter_px: float = 0.0
+    jitter_reference_px: float = 80.0
+    miss_rate: float = 0.0
+    false_positives_per_frame: float = 0.0
+    class_confusion: float = 0.0
+    min_box_height_px: float = 12.0
+    min_box_width_px: float = 8.0
+    max_hidden_fraction: float = 0.5
+    max_outside_fraction: float = 0.5
+    # True: a partly hidden vehicle's box covers only its visible part (a modal detector); False: the
+    # whole projected cuboid (amodal, as the paper's DeepSIL/CARLA boxes).
+    visible_part_boxes: bool = False
+    occlusion_grid: int = 12  # samples per side of the grid that measures how much of a box is hidden
+
+
+SIM_VEHICLE = VehicleProfile(length=4.8, width=1.85, height=1.5, imu_offset=(1.3, 0.925, 0.35))
+
+
+@dataclass(frozen=True, slots=True)
+class ScenarioConfig:
+    """Everything that defines a simulated scenario; `simulate(config, seed)` draws the rest from the seed."""
+
+    name: str
+    site: SiteSpec
+    road: RoadSpec
+    cameras: tuple[CameraSpec, ...]
+    ground: GroundSpec = field(default_factory=GroundSpec)
+    occluders: tuple[OccluderSpec, ...] = ()
+    vehicle: VehicleProfile = SIM_VEHICLE
+    drive: DriveSpec = field(default_factory=DriveSpec)
+    traffic: TrafficSpec = field(default_factory=TrafficSpec)
+    pose: PoseSpec = field(default_factory=PoseSpec)
+    detector: DetectorSpec = field(default_factory=DetectorSpec)
+    duration_s: float | None = None  # None: until the vehicle has left after its last traversal
+    rsu_id: str = "sim-rsu"
+    station_id: int = 4242
+    start_ns: int = 1_717_200_000_000_000_000  # camera clock at t = 0 (plus a seeded offset < 3 h)
+
+
+# --- sites: real UTM places; munich-east is 2.9 deg east of zone 32's central meridian (convergence 2.2 deg)
+ULM_LEHR = SiteSpec("ulm-lehr", "EPSG:32632", 572000.0, 5361000.0, 527.0)
+KARLSRUHE = SiteSpec("karlsruhe", "EPSG:32632", 456123.0, 5428741.0, 165.0)
+DRESDEN = SiteSpec("dresden", "EPSG:32633", 411683.0, 5656140.0, 160.0)
+MUNICH_EAST = SiteSpec("munich-east", "EPSG:32632", 715689.0, 5337040.0, 560.0)
+ROSENHEIM = SiteSpec("rosenheim", "EPSG:32632", 715407.0, 5304756.0, 495.0)
+
+# --- road layouts
+SIL_JUNCTION = RoadSpec(
+    arms=(
+        ArmSpec("E", 2.0, bend_start_m=120.0, bend_deg=15.0, bend_radius_m=300.0),
+        ArmSpec("N", 93.0),
+        ArmSpec("W", 181.0, bend_start_m=90.0, bend_deg=-20.0, bend_radius_m=250.0),
+        ArmSpec("S", 271.0),
+    ),
+    lanes_per_direction=2,
+)
+PLAIN_JUNCTION = RoadSpec(
+    arms=(ArmSpec("E", 0.0), ArmSpec("N", 90.0), ArmSpec("W", 180.0), ArmSpec("S", 270.0))
+)
+SKEWED_JUNCTION = RoadSpec(
+    arms=(
+        ArmSpec("E", -4.0),
+        ArmSpec("N", 78.0, bend_start_m=60.0, bend_deg=25.0, bend_radius_m=180.0),
+        ArmSpec("W", 176.0),
+        ArmSpec("S", 265.0, bend_start_m=110.0, bend_deg=-18.0, bend_radius_m=220.0),
+    ),
+)
+STRAIGHT_ROAD = RoadSpec(arms=(ArmSpec("E", 8.0), ArmSpec("W", 188.0)), arm_length_m=320.0)
+
+# Small real-lens distortion of the regular cameras.
+REGULAR_DIST = (-0.08, 0.03, 0.0004, -0.0003, 0.0)
+
+SIL_NOISE = PoseSpec(
+    position_sigma_m=0.075,
+    height_sigma_m=0.03,
+    drift_m=0.03,
+    yaw_sigma_rad=math.radians(0.15),
+    speed_sigma_mps=0.05,
+    dropouts=3,
+)
+# A YOLO-class detector on a 1920 px image: ~1 px edge noise on an 80 px car, nothing found under ~20 px.
+SIL_DETECTOR = DetectorSpec(
+    box_jitter_px=1.0,
+    miss_rate=0.03,
+    false_positives_per_frame=0.05,
+    class_confusion=0.02,
+    min_box_height_px=20.0,
+    min_box_width_px=14.0,
+)
+
+SIL_NORTH = ScenarioConfig(
+    name="sil-north",
+    site=ULM_LEHR,
+    road=SIL_JUNCTION,
+    cameras=(
+        look_at("north", 14.0, 24.0, 10.0, (-4.0, -18.0), principal_offset_px=(4.2, -3.1), dist=REGULAR_DIST),
+    ),
+    occluders=pole(11.0, 12.0) + pole(-12.0, -12.5),
+    drive=DriveSpec(routes=("S>N", "W>S", "E>N")),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+)
+SIL_SOUTH = replace(
+    SIL_NORTH,
+    name="sil-south",
+    # About 30 m from the nearest road edge: the E-W road's edge is at y = -7, the N-S road's at x = -7.
+    cameras=(
+        look_at(
+            "south",
+            -38.0,
+            -37.0,
+            14.0,
+            (4.0, 6.0),
+            fx=1500.0,
+            principal_offset_px=(-2.5, 5.0),
+            dist=REGULAR_DIST,
+        ),
+    ),
+    drive=DriveSpec(routes=("W>E", "S>W", "E>S")),
+)
+SIL_WEST = replace(
+    SIL_NORTH,
+    name="sil-west",
+    # One RSU mast on the west arm carrying two cameras: one towards the junction, one along the arm.
+    cameras=(
+        look_at(
+            "west-junction", -30.0, 11.0, 9.0, (6.0, -2.0), principal_offset_px=(1.5, 2.0), dist=REGULAR_DIST
+        ),
+        look_at(
+            "west-arm",
+            -30.0,
+            11.0,
+            9.0,
+            (-72.0, -4.0),
+            fx=1450.0,
+            principal_offset_px=(-3.0, 1.0),
+            dist=REGULAR_DIST,
+        ),
+    ),
+    drive=DriveSpec(routes=("W>E", "S>W", "N>W")),
+)
+
+CARLA_LIKE = ScenarioConfig(
+    name="carla-like",
+    site=KARLSRUHE,
+    road=PLAIN_JUNCTION,
+    # CARLA's default camera: 90 deg horizontal field of view, no distortion.
+    cameras=(look_at("carla", 11.0, -13.0, 8.0, (-6.0, 8.0), width=1920, height=1080, fx=960.0),),
+    drive=DriveSpec(routes=("E>W", "N>E", "S>N"), stops=(False, True, False)),
+)
+
+NOISE_02 = replace(SIL_SOUTH, name="noise-0.2", pose=replace(SIL_NOISE, position_sigma_m=0.2))
+NOISE_05 = replace(SIL_SOUTH, name="noise-0.5", pose=replace(SIL_NOISE, position_sigma_m=0.5))
+
+DENSE_TRAFFIC = ScenarioConfig(
+    name="dense-traffic",
+    site=DRESDEN,
+    road=replace(SKEWED_JUNCTION, lanes_per_direction=2),
+    cameras=(
+        look_at("dense", 16.0, 15.0, 12.0, (-8.0, -14.0), principal_offset_px=(2.0, -1.0), dist=REGULAR_DIST),
+    ),
+    occluders=pole(12.0, 11.5),
+    drive=DriveSpec(routes=("W>E", "S>W", "N>S"), followers_per_traversal=(3, 4)),
+    traffic=TrafficSpec(count=300, min_headway_s=1.5),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+)
+
+OCCLUDED = ScenarioConfig(
+    name="occluded",
+    site=KARLSRUHE,
+    road=replace(PLAIN_JUNCTION, lanes_per_direction=2),
+    cameras=(
+        look_at(
+            "occluded", -22.0, 16.0, 9.0, (8.0, -6.0), principal_offset_px=(-1.0, 3.0), dist=REGULAR_DIST
+        ),
+    ),
+    # Poles and trees on the verges in front of the camera (paper Sec. IV-C: a pole at ~45 m hiding the
+    # vehicles behind it, a tree over one lane at ~60 m).
+    occluders=(
+        pole(-9.5, 9.5, 9.0, 0.35)
+        + pole(10.0, -10.0, 9.0, 0.35)
+        + pole(-1.0, 9.5, 7.0)
+        + tree(30.0, -9.5, crown_m=5.5)
+        + tree(14.0, 9.5)
+        + tree(-9.5, -24.0)
+    ),
+    drive=DriveSpec(routes=("W>E", "N>S", "E>N")),
+    pose=SIL_NOISE,
+    detector=replace(SIL_DETECTOR, visible_part_boxes=True),
+)
+
+SLOPE = ScenarioConfig(
+    name="slope",
+    site=ROSENHEIM,
+    road=SKEWED_JUNCTION,
+    ground=GroundSpec(
+        slope=(0.045, -0.02),
+        bumps=(
+            BumpSpec(-35.0, 2.0, 0.9, 14.0),
+            BumpSpec(30.0, -25.0, -0.7, 18.0),
+            BumpSpec(5.0, 45.0, 1.2, 25.0),
+        ),
+    ),
+    cameras=(
+        look_at("slope", 15.0, -16.0, 11.0, (-10.0, 10.0), principal_offset_px=(3.0, 2.0), dist=REGULAR_DIST),
+    ),
+    drive=DriveSpec(routes=("W>E", "N>W", "S>N")),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+)
+
+V2X_10HZ = replace(SIL_NORTH, name="v2x-10hz", pose=replace(SIL_NOISE, rate_hz=10.0))
+CLOCK_OFFSET = replace(SIL_NORTH, name="clock-offset", pose=replace(SIL_NOISE, clock_offset_ns=150_000_000))
+
+WIDE_DISTORTED = ScenarioConfig(
+    name="wide-distorted",
+    site=MUNICH_EAST,
+    road=PLAIN_JUNCTION,
+    cameras=(
+        look_at(
+            "wide",
+            10.0,
+            11.0,
+            7.0,
+            (-3.0, -3.0),
+            width=1920,
+            height=1080,
+            fx=800.0,
+            principal_offset_px=(6.0, -4.0),
+            dist=(-0.05, 0.0, 0.0, 0.0, 0.0),
+        ),
+    ),
+    drive=DriveSpec(routes=("W>E", "S>W", "E>S")),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+)
+
+COLLINEAR = ScenarioConfig(
+    name="collinear",
+    site=MUNICH_EAST,
+    road=STRAIGHT_ROAD,
+    # Telephoto from 25 m beside the road: only a 60 m stretch of it is in view.
+    cameras=(CameraSpec("tele", 5.0, -25.0, 12.0, 43.0, 13.0, fx=3500.0, principal_offset_px=(2.0, -2.0)),),
+    drive=DriveSpec(routes=("W>E", "W>E", "W>E"), stop_probability=0.0, followers_per_traversal=(1, 1)),
+    traffic=TrafficSpec(count=40),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+)
+
+SINGLE_TRAVERSAL = replace(
+    SIL_NORTH, name="single-traversal", drive=DriveSpec(routes=("S>N",)), traffic=TrafficSpec(count=30)
+)
+NO_TARGET = replace(SIL_SOUTH, name="no-target", drive=DriveSpec(routes=(), elsewhere=True), duration_s=240.0)
+
+LONG = ScenarioConfig(
+    name="long",
+    site=MUNICH_EAST,
+    road=replace(SKEWED_JUNCTION, lanes_per_direction=2),
+    cameras=(
+        look_at("long", -15.0, 16.0, 12.0, (8.0, -10.0), principal_offset_px=(1.0, 1.0), dist=REGULAR_DIST),
+    ),
+    occluders=pole(-11.0, 11.0),
+    drive=DriveSpec(routes=("W>E", "S>W", "E>S", "N>E", "W>N", "S>N")),
+    traffic=TrafficSpec(count=300),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+    duration_s=900.0,
+)
+
+PRESETS: dict[str, ScenarioConfig] = {
+    config.name: config
+    for config in (
+        CARLA_LIKE,
+        SIL_NORTH,
+        SIL_SOUTH,
+        SIL_WEST,
+        NOISE_02,
+        NOISE_05,
+        DENSE_TRAFFIC,
+        OCCLUDED,
+        SLOPE,
+        V2X_10HZ,
+        CLOCK_OFFSET,
+        WIDE_DISTORTED,
+        COLLINEAR,
+        SINGLE_TRAVERSAL,
+        NO_TARGET,
+        LONG,
+    )
+}

@@ -1,0 +1,440 @@
+"""Simulated road world: ground surface, drivable paths, the junction's lanes and routes, static occluders.
+
+Everything is in the local frame (UTM minus the scenario's LocalOrigin: x east, y north, z up, metres).
+A road network is built from a few arms leaving the junction centre (straight or bending), each with
+inbound and outbound lanes (right-hand traffic); a route joins an inbound lane's far end, through its
+stop line and a turning arc, to an outbound lane's far end. The far connectors that carry the
+calibration vehicle from one traversal to the next run on a ring well outside every camera's view.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.arrays import FloatArray, check_shape
+from pipeline.errors import InputError
+from pipeline.sim_presets import GroundSpec, OccluderSpec, RoadSpec
+from pipeline.vehicle import body_corners_body_frame
+from schemas.common import VehicleProfile
+
+# Spacing of the dense path samples (m): arcs of 6 m radius deviate < 2 mm from their chords.
+PATH_STEP_M = 0.25
+# Curves are driven at most this lateral acceleration (m/s^2), and slowed for at this deceleration.
+LATERAL_ACCEL_MPS2 = 2.5
+CURVE_DECEL_MPS2 = 2.0
+
+# The 8 corners of a unit box in body-corner order (footprint RR, FR, FL, RL, then the roof), shared by
+# vehicles and occluders so both are cuboids in the same convention as pipeline.vehicle.
+UNIT_BOX_CORNERS = body_corners_body_frame(
+    VehicleProfile(length=1.0, width=1.0, height=1.0, imu_offset=(0, 0, 0))
+)
+
+
+@dataclass(frozen=True, eq=False)
+class GroundSurface:
+    """Road surface z(x, y) = slope . (x, y) + sum of Gaussian bumps (local frame, metres)."""
+
+    slope: FloatArray  # (2,) dz/dx, dz/dy
+    bumps: FloatArray  # (K, 4) x, y, height, sigma
+
+    @staticmethod
+    def from_spec(spec: GroundSpec) -> GroundSurface:
+        bumps = np.array([[b.x_m, b.y_m, b.height_m, b.sigma_m] for b in spec.bumps], dtype=np.float64)
+        return GroundSurface(np.array(spec.slope, dtype=np.float64), bumps.reshape(-1, 4))
+
+    def height(self, xy: FloatArray) -> FloatArray:
+        """(N, 2) -> (N,) ground height in metres."""
+        z = xy @ self.slope
+        for x0, y0, amplitude, sigma in self.bumps:
+            d2 = (xy[:, 0] - x0) ** 2 + (xy[:, 1] - y0) ** 2
+            z = z + amplitude * np.exp(-0.5 * d2 / (sigma * sigma))
+        return np.asarray(z, dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class Occluder:
+    """A static obstacle (pole, tree trunk or crown, sign) as a cuboid: corners (8, 3) in the local frame,
+    footprint first (same order as vehicle.body_corners). Occluders hide vehicles but are never detected."""
+
+    kind: str
+    corners: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class WorldGeometry:
+    """What the preview and the tests need of the world: lane centre lines, occluders and the ground."""
+
+    lanes: tuple[FloatArray, ...]  # each (K, 3) lane centre polyline, local frame
+    occluders: tuple[Occluder, ...]
+    ground: GroundSurface
+
+    def ground_height(self, xy: FloatArray) -> FloatArray:
+        """(N, 2) local x, y -> (N,) z of the road surface (m)."""
+        check_shape(xy, "N,2", name="xy")
+        return self.ground.height(xy)
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _left_normal(heading: FloatArray) -> FloatArray:
+    return np.stack([-np.sin(heading), np.cos(heading)], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class Path:
+    """A drivable centre line resampled every PATH_STEP_M: arc length s (M,), xy (M, 2), heading (M,) in
+    radians (unwrapped, grid east = 0, counter-clockwise). Positions beyond either end extrapolate along
+    the end heading, so vehicles may enter before or leave after the sampled part without a jump."""
+
+    s: FloatArray
+    xy: FloatArray
+    heading: FloatArray
+
+    @staticmethod
+    def from_samples(xy: FloatArray, heading: FloatArray) -> Path:
+        """Resample an ordered polyline with tangent headings to uniform arc-length spacing."""
+        step = np.hypot(*np.diff(xy, axis=0).T)
+        keep = np.concatenate([[True], step > 1e-9])
+        xy, heading = xy[keep], np.unwrap(heading[keep])
+        s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+        n = max(2, math.ceil(s[-1] / PATH_STEP_M) + 1)
+        s_new = np.linspace(0.0, s[-1], n)
+        xy_new = np.stack([np.interp(s_new, s, xy[:, 0]), np.interp(s_new, s, xy[:, 1])], axis=1)
+        return Path(s_new, xy_new, np.interp(s_new, s, heading))
+
+    @staticmethod
+    def join(parts: list[Path]) -> Path:
+        """Concatenate paths whose ends meet (within a few cm); headings are made continuous."""
+        xy = [parts[0].xy]
+        heading = [parts[0].heading]
+        for part in parts[1:]:
+            turn = heading[-1][-1] - part.heading[0]
+            offset = 2.0 * math.pi * round(turn / (2.0 * math.pi))
+            xy.append(part.xy[1:])
+            heading.append(part.heading[1:] + offset)
+        return Path.from_samples(np.concatenate(xy), np.concatenate(heading))
+
+    @property
+    def length(self) -> float:
+        return float(self.s[-1])
+
+    def at(self, s_query: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Position (N, 2) and heading (N,) at arc lengths (N,); linear extrapolation beyond the ends."""
+        s_clamped = np.clip(s_query, 0.0, self.length)
+        xy = np.stack(
+            [np.interp(s_clamped, self.s, self.xy[:, 0]), np.interp(s_clamped, self.s, self.xy[:, 1])], axis=1
+        )
+        heading = np.interp(s_clamped, self.s, self.heading)
+        beyond = s_query - s_clamped
+        if np.any(beyond != 0.0):
+            xy = xy + beyond[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+        return xy, heading
+
+    def offset(self, lateral_m: float) -> Path:
+        """Parallel path `lateral_m` to the left (negative: right) of this one."""
+        return Path.from_samples(self.xy + lateral_m * _left_normal(self.heading), self.heading)
+
+    def reversed(self) -> Path:
+        return Path.from_samples(self.xy[::-1].copy(), self.heading[::-1] + math.pi)
+
+    def slice(self, s_from: float, s_to: float) -> Path:
+        """The part between two arc lengths (clamped to the path)."""
+        inner = (self.s > s_from) & (self.s < s_to)
+        ends = np.array([max(s_from, 0.0), min(s_to, self.length)])
+        xy_ends, heading_ends = self.at(ends)
+        xy = np.concatenate([xy_ends[:1], self.xy[inner], xy_ends[1:]])
+        heading = np.concatenate([heading_ends[:1], self.heading[inner], heading_ends[1:]])
+        return Path.from_samples(xy, heading)
+
+    def end_pose(self) -> tuple[FloatArray, float]:
+        return self.xy[-1].copy(), float(self.heading[-1])
+
+    def start_pose(self) -> tuple[FloatArray, float]:
+        return self.xy[0].copy(), float(self.heading[0])
+
+    def curve_speed_limit(self) -> FloatArray:
+        """Comfortable speed (m/s) at every sample: lateral acceleration <= LATERAL_ACCEL_MPS2 in curves,
+        reached by braking at CURVE_DECEL_MPS2 beforehand (a backward pass in v^2, vectorised as a
+        running minimum), so a driver model following it slows down before a turn, not in it."""
+        curvature = np.abs(np.gradient(self.heading, self.s)) if len(self.s) > 2 else np.zeros(len(self.s))
+        # Smooth over ~3 m: the sampled heading of offset polylines is slightly noisy at joints.
+        width = max(1, round(3.0 / PATH_STEP_M))
+        curvature = np.convolve(curvature, np.ones(width) / width, mode="same")
+        v2_limit = LATERAL_ACCEL_MPS2 / np.maximum(curvature, 1e-6)
+        budget = 2.0 * CURVE_DECEL_MPS2 * self.s
+        # w[i] = min_{j >= i} (limit[j] + budget[j] - budget[i]): reversed running minimum.
+        v2 = np.minimum.accumulate((v2_limit + budget)[::-1])[::-1] - budget
+        return np.asarray(np.sqrt(np.maximum(v2, 0.0)), dtype=np.float64)
+
+
+def straight_samples(start: FloatArray, heading: float, length: float) -> tuple[FloatArray, FloatArray]:
+    n = max(2, math.ceil(length / PATH_STEP_M) + 1)
+    d = np.linspace(0.0, length, n)
+    xy = start + d[:, None] * np.array([math.cos(heading), math.sin(heading)])
+    return xy, np.full(n, heading)
+
+
+def arc_samples(
+    start: FloatArray, heading: float, radius: float, turn: float
+) -> tuple[FloatArray, FloatArray]:
+    """Circular arc from `start` (tangent `heading`) turning `turn` rad (positive = left) on `radius` m."""
+    sign = 1.0 if turn >= 0 else -1.0
+    centre = start + sign * radius * _left_normal(np.array(heading))
+    n = max(2, math.ceil(abs(turn) * radius / PATH_STEP_M) + 1)
+    headings = heading + np.linspace(0.0, turn, n)
+    xy = centre - sign * radius * _left_normal(headings)
+    return xy, headings
+
+
+def bezier_samples(p0: FloatArray, h0: float, p1: FloatArray, h1: float) -> tuple[FloatArray, FloatArray]:
+    """Cubic Bezier from pose (p0, h0) to (p1, h1); handle lengths follow the circular-arc rule so a
+    symmetric turn comes out almost circular."""
+    chord = float(np.hypot(*(p1 - p0)))
+    turn = abs(_wrap(h1 - h0))
+    handle = (
+        chord / 3.0
+        if turn < 1e-3
+        else (4.0 / 3.0) * math.tan(turn / 4.0) * chord / (2.0 * math.sin(turn / 2.0))
+    )
+    c0 = p0 + handle * np.array([math.cos(h0), math.sin(h0)])
+    c1 = p1 - handle * np.array([math.cos(h1), math.sin(h1)])
+    n = max(8, math.ceil(1.5 * chord / PATH_STEP_M))
+    u = np.linspace(0.0, 1.0, n)[:, None]
+    xy = (1 - u) ** 3 * p0 + 3 * (1 - u) ** 2 * u * c0 + 3 * (1 - u) * u**2 * c1 + u**3 * p1
+    d = 3 * (1 - u) ** 2 * (c0 - p0) + 6 * (1 - u) * u * (c1 - c0) + 3 * u**2 * (p1 - c1)
+    return xy, np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+
+
+def fillet_path(p0: FloatArray, h0: float, p1: FloatArray, h1: float) -> Path:
+    """Junction connector from a stop line pose to an outbound lane start: straight, circular arc,
+    straight (a turning lane as drawn on real junctions); a Bezier where no such arc fits."""
+    d0 = np.array([math.cos(h0), math.sin(h0)])
+    d1 = np.array([math.cos(h1), math.sin(h1)])
+    cross = d0[0] * d1[1] - d0[1] * d1[0]
+    delta = p1 - p0
+    if abs(cross) < 1e-6:
+        lateral = d0[0] * delta[1] - d0[1] * delta[0]
+        if abs(lateral) < 0.05 and float(delta @ d0) > 0:
+            return Path.from_samples(*straight_samples(p0, h0, float(np.hypot(*delta))))
+        return Path.from_samples(*bezier_samples(p0, h0, p1, h1))
+    along0, along1 = np.linalg.solve(np.column_stack([d0, d1]), delta)  # p0 + a0 d0 = p1 - a1 d1
+    if along0 <= 0.5 or along1 <= 0.5:
+        return Path.from_samples(*bezier_samples(p0, h0, p1, h1))
+    tangent = min(along0, along1)
+    turn = _wrap(h1 - h0)
+    radius = tangent / math.tan(abs(turn) / 2.0)
+    pieces = []
+    if along0 - tangent > 1e-6:
+        pieces.append(straight_samples(p0, h0, along0 - tangent))
+    arc_start = p0 + (along0 - tangent) * d0
+    pieces.append(arc_samples(arc_start, h0, radius, turn))
+    if along1 - tangent > 1e-6:
+        pieces.append(straight_samples(p1 - (along1 - tangent) * d1, h1, along1 - tangent))
+    return Path.join([Path.from_samples(*piece) for piece in pieces])
+
+
+@dataclass(frozen=True, eq=False)
+class Route:
+    """One way through the junction: inbound lane (entry_arm, entry_lane) -> outbound (exit_arm, exit_lane).
+
+    `stop_s` is the arc length of the stop line; vehicles entering the same inbound lane share the path
+    up to it (and whole routes are shared by vehicles on the same route)."""
+
+    name: str  # e.g. "W>E" (arm names), lanes in entry_lane / exit_lane
+    entry_arm: str
+    entry_lane: int
+    exit_arm: str
+    exit_lane: int
+    turn: str  # "straight", "left" or "right"
+    path: Path
+    stop_s: float
+    speed_limit: FloatArray  # curve_speed_limit() of path, sampled at path.s
+
+    @property
+    def lane_key(self) -> tuple[str, int]:
+        return (self.entry_arm, self.entry_lane)
+
+
+@dataclass(frozen=True, eq=False)
+class RoadNetwork:
+    """Arms, lanes and all routes of the junction, plus the radius of the far ring used by connectors."""
+
+    arm_names: tuple[str, ...]
+    inbound: dict[tuple[str, int], Path]
+    outbound: dict[tuple[str, int], Path]
+    routes: dict[tuple[str, int, str, int], Route]
+    ring_radius_m: float
+    lanes_per_direction: int
+
+    def route(self, name: str) -> Route:
+        """The route called "A>B" (arm names): right lane for straight and right turns, inner for left."""
+        try:
+            entry, exit_ = name.split(">")
+        except ValueError as err:
+            raise InputError("route", f"route = {name!r} is not of the form 'A>B'") from err
+        outer = self.lanes_per_direction - 1
+        for lane in range(self.lanes_per_direction):
+            candidate = self.routes.get((entry, lane, exit_, lane))
+            if candidate is None:
+                continue
+            wanted = 0 if candidate.turn == "left" else outer
+            if lane == wanted:
+                return candidate
+        raise InputError("route", f"route = {name!r}: no such route; arms are {', '.join(self.arm_names)}")
+
+
+def _arm_centreline(
+    angle_deg: float, length_m: float, bend_start_m: float, bend_deg: float, bend_radius_m: float
+) -> Path:
+    heading = math.radians(angle_deg)
+    origin = np.zeros(2)
+    if bend_deg == 0.0 or bend_start_m >= length_m:
+        return Path.from_samples(*straight_samples(origin, heading, length_m))
+    turn = math.radians(bend_deg)
+    arc_length = min(abs(turn) * bend_radius_m, length_m - bend_start_m)
+    turn = math.copysign(arc_length / bend_radius_m, turn)
+    pieces = [Path.from_samples(*straight_samples(origin, heading, bend_start_m))] if bend_start_m > 0 else []
+    start = np.array([math.cos(heading), math.sin(heading)]) * bend_start_m
+    pieces.append(Path.from_samples(*arc_samples(start, heading, bend_radius_m, turn)))
+    rest = length_m - bend_start_m - arc_length
+    if rest > 1e-6:
+        end, end_heading = pieces[-1].end_pose()
+        pieces.append(Path.from_samples(*straight_samples(end, end_heading, rest)))
+    return Path.join(pieces)
+
+
+def _turn_kind(h_in: float, h_out: float) -> str:
+    turn = _wrap(h_out - h_in)
+    if abs(turn) < math.radians(35.0):
+        return "straight"
+    return "left" if turn > 0 else "right"
+
+
+def build_network(road: RoadSpec) -> RoadNetwork:
+    """Lanes and routes of a junction with `road.arms` (2 arms: a plain road; right-hand traffic)."""
+    width = road.lane_width_m
+    lanes = road.lanes_per_direction
+    stop_m = lanes * width + road.stop_line_margin_m  # crossing road half-width + crosswalk
+    inbound: dict[tuple[str, int], Path] = {}
+    outbound: dict[tuple[str, int], Path] = {}
+    for arm in road.arms:
+        centre = _arm_centreline(
+            arm.angle_deg, road.arm_length_m, arm.bend_start_m, arm.bend_deg, arm.bend_radius_m
+        ).slice(stop_m, road.arm_length_m)
+        for lane in range(lanes):
+            # Right-hand traffic: outbound lanes lie right of the outward direction, inbound ones left.
+            outbound[(arm.name, lane)] = centre.offset(-(lane + 0.5) * width)
+            inbound[(arm.name, lane)] = centre.offset((lane + 0.5) * width).reversed()
+    routes: dict[tuple[str, int, str, int], Route] = {}
+    for a in road.arms:
+        for b in road.arms:
+            if a.name == b.name:
+                continue
+            for lane in range(lanes):
+                lane_in, lane_out = inbound[(a.name, lane)], outbound[(b.name, lane)]
+                p0, h0 = lane_in.end_pose()
+                p1, h1 = lane_out.start_pose()
+                turn = _turn_kind(h0, h1)
+                # Left turns only from the inner lane, right turns only from the outer one.
+                if (turn == "left" and lane != 0) or (turn == "right" and lane != lanes - 1):
+                    continue
+                path = Path.join([lane_in, fillet_path(p0, h0, p1, h1), lane_out])
+                routes[(a.name, lane, b.name, lane)] = Route(
+                    f"{a.name}>{b.name}",
+                    a.name,
+                    lane,
+                    b.name,
+                    lane,
+                    turn,
+                    path,
+                    lane_in.length,
+                    path.curve_speed_limit(),
+                )
+    far = max(float(np.hypot(*p.xy[-1])) for p in outbound.values())
+    return RoadNetwork(
+        tuple(a.name for a in road.arms), inbound, outbound, routes, far + road.connector_clearance_m, lanes
+    )
+
+
+def far_connector(exit_path: Path, entry_path: Path, ring_radius_m: float) -> Path:
+    """Path from the far end of one route to the far start of the next, around a ring of radius
+    `ring_radius_m` about the junction (so the calibration vehicle is out of every camera's view between
+    traversals while its poses stay physically continuous)."""
+    p0, h0 = exit_path.end_pose()
+    p1, h1 = entry_path.start_pose()
+    theta0 = math.atan2(p0[1], p0[0])
+    theta1 = math.atan2(p1[1], p1[0])
+    sweep = (theta1 - theta0) % (2.0 * math.pi)
+    if sweep > math.pi + 1e-6:
+        sweep -= 2.0 * math.pi  # go the shorter way round (clockwise)
+    steps = max(2, math.ceil(abs(sweep) / math.radians(30.0)) + 1)
+    direction = 1.0 if sweep >= 0 else -1.0
+    poses = [(p0, h0)]
+    # Skip the ring points right at the ends: the ramps onto and off the ring need room to turn.
+    for angle in np.linspace(theta0, theta0 + sweep, steps + 1)[1:-1]:
+        point = ring_radius_m * np.array([math.cos(angle), math.sin(angle)])
+        poses.append((point, float(angle + direction * math.pi / 2.0)))
+    if len(poses) == 1:  # sweep too small for a ring point: loop out and back
+        mid = 0.5 * (theta0 + theta1)
+        poses.append((ring_radius_m * np.array([math.cos(mid), math.sin(mid)]), mid + math.pi / 2.0))
+    poses.append((p1, h1))
+    parts = [
+        Path.from_samples(*bezier_samples(a, ha, b, hb)) for (a, ha), (b, hb) in itertools.pairwise(poses)
+    ]
+    return Path.join(parts)
+
+
+def ring_path(radius_m: float, length_m: float, start_angle: float = 0.0) -> Path:
+    """Counter-clockwise circle (repeated laps) of the given length: a drive far away from the site."""
+    start = radius_m * np.array([math.cos(start_angle), math.sin(start_angle)])
+    return Path.from_samples(*arc_samples(start, start_angle + math.pi / 2.0, radius_m, length_m / radius_m))
+
+
+def extension_path(path: Path, length_m: float) -> Path:
+    """Straight continuation of a path's end (the calibration vehicle driving away after its last pass)."""
+    p, h = path.end_pose()
+    return Path.from_samples(*straight_samples(p, h, length_m))
+
+
+def build_occluders(specs: tuple[OccluderSpec, ...], ground: GroundSurface) -> tuple[Occluder, ...]:
+    """Cuboids standing on the ground (their base `base_height_m` above it: a tree crown on its trunk)."""
+    occluders = []
+    for spec in specs:
+        base_z = float(ground.height(np.array([[spec.x_m, spec.y_m]]))[0]) + spec.base_height_m
+        yaw = math.radians(spec.yaw_deg)
+        rot = np.array(
+            [[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0, 0, 1.0]]
+        )
+        local = (UNIT_BOX_CORNERS - np.array([0.5, 0.5, 0.0])) * np.array(
+            [spec.length_m, spec.width_m, spec.height_m]
+        )
+        corners = local @ rot.T + np.array([spec.x_m, spec.y_m, base_z])
+        occluders.append(Occluder(spec.kind, corners))
+    return tuple(occluders)
+
+
+def lane_polylines(
+    network: RoadNetwork, ground: GroundSurface, step_m: float = 1.0
+) -> tuple[FloatArray, ...]:
+    """Lane centre lines as (K, 3) polylines: every inbound and outbound lane, then every turning lane
+    (the junction part of each route)."""
+    polylines = []
+    stride = max(1, round(step_m / PATH_STEP_M))
+
+    def lift(xy: FloatArray) -> FloatArray:
+        return np.column_stack([xy, ground.height(xy)])
+
+    for path in [*network.inbound.values(), *network.outbound.values()]:
+        polylines.append(lift(np.vstack([path.xy[::stride], path.xy[-1:]])))
+    for route in network.routes.values():
+        lane_in = network.inbound[route.lane_key]
+        lane_out = network.outbound[(route.exit_arm, route.exit_lane)]
+        inner = route.path.slice(lane_in.length, route.path.length - lane_out.length)
+        polylines.append(lift(np.vstack([inner.xy[::stride], inner.xy[-1:]])))
+    return tuple(polylines)

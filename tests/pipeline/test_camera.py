@@ -1,0 +1,361 @@
+"""Camera geometry against independent references: cv2.projectPoints, scipy rotations, round trips."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation as SciRotation
+
+from pipeline.arrays import FloatArray
+from pipeline.camera import (
+    CameraModel,
+    camera_center,
+    camera_rotation_from_view,
+    distort_normalized,
+    project_points,
+    project_points_cam,
+    quaternion_wxyz_from_rotation,
+    rotation_angle_rad,
+    rotation_from_rvec,
+    rotation_from_ypr,
+    rvec_from_rotation,
+    undistort_pixels,
+)
+from pipeline.errors import ShapeError
+from schemas.common import CameraIntrinsics
+
+angles = st.floats(-math.pi, math.pi)
+unit = st.floats(-1.0, 1.0)
+
+
+@st.composite
+def cameras(draw: st.DrawFn, distortion: bool = True) -> CameraModel:
+    """Realistic pinhole cameras with OpenCV distortion of the size real lenses show."""
+    width = draw(st.integers(320, 4096))
+    height = draw(st.integers(240, 3000))
+    fx = draw(st.floats(300.0, 4000.0))
+    dist = (
+        [
+            draw(st.floats(-0.4, 0.4)),  # k1
+            draw(st.floats(-0.2, 0.2)),  # k2
+            draw(st.floats(-0.005, 0.005)),  # p1
+            draw(st.floats(-0.005, 0.005)),  # p2
+            draw(st.floats(-0.05, 0.05)),  # k3
+        ]
+        if distortion
+        else [0.0] * 5
+    )
+    intrinsics = CameraIntrinsics(
+        width=width,
+        height=height,
+        fx=fx,
+        fy=fx * draw(st.floats(0.95, 1.05)),
+        cx=width / 2.0 + draw(st.floats(-50.0, 50.0)),
+        cy=height / 2.0 + draw(st.floats(-50.0, 50.0)),
+        dist=tuple(dist),
+    )
+    return CameraModel.from_intrinsics(intrinsics)
+
+
+@st.composite
+def rotations(draw: st.DrawFn) -> FloatArray:
+    """Uniform-ish random rotations (normalised Gaussian quaternion)."""
+    q = np.array([draw(st.floats(-1.0, 1.0)) for _ in range(4)])
+    assume(np.linalg.norm(q) > 0.1)
+    return np.asarray(SciRotation.from_quat(q / np.linalg.norm(q)).as_matrix())
+
+
+@st.composite
+def poses_and_points(
+    draw: st.DrawFn, max_normalized: float = 0.8
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(R_cam_from_local, t_cam_from_local, points_local (N, 3)) with every point 1-200 m in front."""
+    R = draw(rotations())
+    t = np.array([draw(st.floats(-100.0, 100.0)) for _ in range(3)])
+    n = draw(st.integers(1, 20))
+    xy = draw(arrays(np.float64, (n, 2), elements=st.floats(-max_normalized, max_normalized)))
+    z = draw(arrays(np.float64, (n, 1), elements=st.floats(1.0, 200.0)))
+    points_cam = np.hstack([xy * z, z])
+    return R, t, (points_cam - t) @ R  # R^T (X_cam - t), row-wise
+
+
+def is_monotonic(dist: FloatArray, max_r: float) -> bool:
+    """r -> r (1 + k1 r^2 + k2 r^4 + k3 r^6) keeps increasing out to max_r (else the lens model folds)."""
+    k1, k2, _, _, k3 = dist
+    r = np.linspace(0.0, max_r, 200)
+    slope = 1.0 + 3.0 * k1 * r**2 + 5.0 * k2 * r**4 + 7.0 * k3 * r**6
+    return bool(np.all(slope > 0.2))
+
+
+# --- projection ------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=100, deadline=None)
+@given(camera=cameras(), scene=poses_and_points())
+def test_project_points_equals_opencv(
+    camera: CameraModel, scene: tuple[FloatArray, FloatArray, FloatArray]
+) -> None:
+    R, t, points_local = scene
+    pixels, depth = project_points(points_local, R, t, camera)
+    rvec = SciRotation.from_matrix(R).as_rotvec()
+    expected, _ = cv2.projectPoints(points_local, rvec, t, camera.K, camera.dist)
+    np.testing.assert_allclose(pixels, expected.reshape(-1, 2), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(depth, (points_local @ R.T + t)[:, 2], rtol=1e-12, atol=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(camera=cameras(distortion=False), scene=poses_and_points())
+def test_project_points_without_distortion_equals_opencv(
+    camera: CameraModel, scene: tuple[FloatArray, FloatArray, FloatArray]
+) -> None:
+    R, t, points_local = scene
+    pixels, _ = project_points(points_local, R, t, camera)
+    expected, _ = cv2.projectPoints(points_local, SciRotation.from_matrix(R).as_rotvec(), t, camera.K, None)
+    np.testing.assert_allclose(pixels, expected.reshape(-1, 2), rtol=0, atol=1e-6)
+
+
+def test_points_behind_or_on_the_camera_plane_project_to_nan() -> None:
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(width=1920, height=1080, fx=1000.0, fy=1000.0, cx=960.0, cy=540.0)
+    )
+    points_cam = np.array([[0.0, 0.0, 10.0], [1.0, 2.0, -5.0], [1.0, 1.0, 0.0], [0.5, 0.5, 1e-12]])
+    pixels, depth = project_points(points_cam, np.eye(3), np.zeros(3), camera)
+    np.testing.assert_allclose(pixels[0], [960.0, 540.0])
+    assert np.isnan(pixels[1:]).all()
+    np.testing.assert_array_equal(depth, points_cam[:, 2])
+
+
+def test_project_points_checks_shapes() -> None:
+    camera = CameraModel(np.eye(3), np.zeros(5), 100, 100)
+    with pytest.raises(ShapeError, match=r"points_local: expected \(N, 3\), got \(4, 2\)"):
+        project_points(np.zeros((4, 2)), np.eye(3), np.zeros(3), camera)
+    with pytest.raises(ShapeError, match="points_cam"):
+        project_points_cam(np.zeros(3), camera)
+
+
+# --- distortion ------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=100, deadline=None)
+@given(camera=cameras(), data=st.data())
+def test_undistort_inverts_the_distortion(camera: CameraModel, data: st.DataObject) -> None:
+    max_r = 0.8
+    assume(is_monotonic(camera.dist, max_r * math.sqrt(2.0)))
+    xy = data.draw(arrays(np.float64, (data.draw(st.integers(1, 30)), 2), elements=st.floats(-max_r, max_r)))
+    pixels = project_points_cam(np.hstack([xy, np.ones((len(xy), 1))]), camera)
+    recovered = undistort_pixels(pixels, camera)
+    np.testing.assert_allclose(recovered, xy, rtol=0, atol=1e-11)
+    reprojected = project_points_cam(np.hstack([recovered, np.ones((len(xy), 1))]), camera)
+    np.testing.assert_allclose(reprojected, pixels, rtol=0, atol=1e-9)
+
+
+def test_undistort_wide_angle_up_to_the_image_corners() -> None:
+    # fx 800 on a 1920 x 1080 sensor: 100 deg horizontal field of view, barrel k1 = -0.05.
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(
+            width=1920, height=1080, fx=800.0, fy=800.0, cx=960.0, cy=540.0, dist=(-0.05, 0.0, 0.0, 0.0, 0.0)
+        )
+    )
+    u, v = np.meshgrid(np.linspace(0.0, 1919.0, 41), np.linspace(0.0, 1079.0, 23))
+    pixels = np.column_stack([u.ravel(), v.ravel()])
+    xy = undistort_pixels(pixels, camera)
+    assert np.isfinite(xy).all()
+    reprojected = project_points_cam(np.hstack([xy, np.ones((len(xy), 1))]), camera)
+    np.testing.assert_allclose(reprojected, pixels, rtol=0, atol=1e-9)
+    # Barrel distortion: the corner's true ray lies further out than the distorted pixel suggests.
+    corner = undistort_pixels(np.array([[0.0, 0.0]]), camera)[0]
+    assert np.all(np.abs(corner) > np.array([960.0, 540.0]) / 800.0)
+
+
+def test_undistort_matches_opencv_for_mild_distortion() -> None:
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(
+            width=1280,
+            height=720,
+            fx=900.0,
+            fy=905.0,
+            cx=640.0,
+            cy=360.0,
+            dist=(-0.1, 0.02, 0.001, -0.0005, 0.0),
+        )
+    )
+    pixels = np.array([[0.0, 0.0], [640.0, 360.0], [1279.0, 719.0], [100.0, 600.0]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    src = pixels.reshape(-1, 1, 2)
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4
+        expected = cv2.undistortPointsIter(src, camera.K, camera.dist, None, None, criteria)
+    else:  # OpenCV 5 folded the criteria into undistortPoints
+        expected = cv2.undistortPoints(src, camera.K, camera.dist, R=None, P=None, criteria=criteria)
+    np.testing.assert_allclose(undistort_pixels(pixels, camera), expected.reshape(-1, 2), atol=1e-8)
+
+
+def test_undistort_with_skew_inverts_projection() -> None:
+    K = np.array([[1000.0, 3.0, 640.0], [0.0, 990.0, 360.0], [0.0, 0.0, 1.0]])
+    xy = np.array([[0.1, -0.2], [-0.3, 0.25], [0.0, 0.0]])
+    for dist in (np.zeros(5), np.array([-0.1, 0.01, 0.0, 0.0, 0.0])):
+        camera = CameraModel(K, dist, 1280, 720)
+        pixels = project_points_cam(np.hstack([xy, np.ones((3, 1))]), camera)
+        np.testing.assert_allclose(undistort_pixels(pixels, camera), xy, atol=1e-12)
+
+
+def test_undistort_of_no_pixels() -> None:
+    camera = CameraModel(np.eye(3), np.array([0.1, 0.0, 0.0, 0.0, 0.0]), 10, 10)
+    assert undistort_pixels(np.zeros((0, 2)), camera).shape == (0, 2)
+
+
+def test_distort_normalized_is_identity_without_distortion() -> None:
+    xy = np.array([[0.3, -0.2], [0.0, 0.0]])
+    np.testing.assert_array_equal(distort_normalized(xy, np.zeros(5)), xy)
+
+
+# --- rotations -------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=100, deadline=None)
+@given(yaw=st.lists(angles, min_size=1, max_size=5), data=st.data())
+def test_rotation_from_ypr_is_intrinsic_zyx(yaw: list[float], data: st.DataObject) -> None:
+    n = len(yaw)
+    pitch = data.draw(st.lists(st.floats(-1.5, 1.5), min_size=n, max_size=n))
+    roll = data.draw(st.lists(angles, min_size=n, max_size=n))
+    R = rotation_from_ypr(np.array(yaw), np.array(pitch), np.array(roll))
+    expected = SciRotation.from_euler("ZYX", np.column_stack([yaw, pitch, roll])).as_matrix()
+    assert R.shape == (n, 3, 3)
+    np.testing.assert_allclose(R, expected, atol=1e-12)
+
+
+def test_rotation_from_ypr_meaning() -> None:
+    # yaw +90 deg turns the body's forward axis (x) to world north (+y); pitch +90 deg turns it down.
+    forward = np.array([1.0, 0.0, 0.0])
+    quarter, zero = np.array([math.pi / 2]), np.zeros(1)
+    np.testing.assert_allclose(
+        rotation_from_ypr(quarter, zero, zero)[0] @ forward, [0.0, 1.0, 0.0], atol=1e-15
+    )
+    np.testing.assert_allclose(
+        rotation_from_ypr(zero, quarter, zero)[0] @ forward, [0.0, 0.0, -1.0], atol=1e-15
+    )
+
+
+@settings(max_examples=100, deadline=None)
+@given(R=rotations())
+def test_quaternion_matches_scipy_with_w_non_negative(R: FloatArray) -> None:
+    q = quaternion_wxyz_from_rotation(R)
+    x, y, z, w = SciRotation.from_matrix(R).as_quat()
+    expected = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
+    assert q[0] >= 0.0
+    assert np.linalg.norm(q) == pytest.approx(1.0, abs=1e-12)
+    if abs(expected[0]) < 1e-9:  # a half turn: q and -q both have w = 0
+        assert min(np.abs(q - expected).max(), np.abs(q + expected).max()) < 1e-9
+    else:
+        np.testing.assert_allclose(q, expected, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "rotvec",
+    [[0.0, 0.0, 0.0], [math.pi, 0.0, 0.0], [0.0, math.pi, 0.0], [0.0, 0.0, math.pi], [2.0, 2.0, 1.0]],
+)
+def test_quaternion_of_special_rotations(rotvec: list[float]) -> None:
+    R = SciRotation.from_rotvec(rotvec).as_matrix()
+    q = quaternion_wxyz_from_rotation(R)
+    back = SciRotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
+    np.testing.assert_allclose(back, R, atol=1e-12)
+    assert q[0] >= 0.0
+
+
+@settings(max_examples=100, deadline=None)
+@given(axis=st.tuples(unit, unit, unit), angle=st.floats(0.0, math.pi - 1e-3))
+def test_rvec_round_trip(axis: tuple[float, float, float], angle: float) -> None:
+    direction = np.array(axis)
+    assume(np.linalg.norm(direction) > 0.1)
+    rvec = direction / np.linalg.norm(direction) * angle
+    R = rotation_from_rvec(rvec)
+    np.testing.assert_allclose(R, SciRotation.from_rotvec(rvec).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(rvec_from_rotation(R), rvec, atol=1e-9)
+    assert rotation_angle_rad(np.eye(3), R) == pytest.approx(angle, abs=1e-7)
+    assert rotation_angle_rad(R, R) < 1e-7
+
+
+@pytest.mark.parametrize("angle", [1e-12, 1e-9, 1e-6, 1e-5, 2e-5])
+def test_rvec_of_tiny_rotations_is_not_rounded_to_zero(angle: float) -> None:
+    # Refinement and uncertainty work with small rotation increments; cv2.Rodrigues zeroes these below 1e-5.
+    rvec = np.array([0.3, -0.4, 0.5]) / np.linalg.norm([0.3, -0.4, 0.5]) * angle
+    np.testing.assert_allclose(rvec_from_rotation(rotation_from_rvec(rvec)), rvec, rtol=1e-6, atol=1e-15)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    R=rotations(), t=st.tuples(st.floats(-100.0, 100.0), st.floats(-100.0, 100.0), st.floats(-100.0, 100.0))
+)
+def test_camera_center_maps_to_the_camera_origin(R: FloatArray, t: tuple[float, float, float]) -> None:
+    center = camera_center(R, np.array(t))
+    np.testing.assert_allclose(R @ center + np.array(t), np.zeros(3), atol=1e-10)
+
+
+# --- camera_rotation_from_view ---------------------------------------------------------------------------
+
+
+@settings(max_examples=100, deadline=None)
+@given(yaw=angles, pitch_down=st.floats(-1.5, 1.5), roll=st.floats(-0.5, 0.5))
+def test_view_rotation_is_proper_and_looks_where_asked(yaw: float, pitch_down: float, roll: float) -> None:
+    R = camera_rotation_from_view(yaw, pitch_down, roll)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
+    optical_axis = R.T @ np.array([0.0, 0.0, 1.0])  # camera z in the world frame
+    assert math.asin(-optical_axis[2]) == pytest.approx(pitch_down, abs=1e-9)
+    if abs(pitch_down) < 1.5:
+        azimuth = math.atan2(optical_axis[1], optical_axis[0])
+        assert abs(math.remainder(azimuth - yaw, 2.0 * math.pi)) < 1e-9
+    # Roll turns the image about the optical axis and leaves the axis alone.
+    np.testing.assert_allclose(
+        camera_rotation_from_view(yaw, pitch_down, 0.0).T[:, 2], optical_axis, atol=1e-12
+    )
+    assert rotation_angle_rad(camera_rotation_from_view(yaw, pitch_down, 0.0), R) == pytest.approx(
+        abs(roll), abs=1e-7
+    )
+
+
+@settings(max_examples=100, deadline=None)
+@given(yaw=angles, pitch_down=st.floats(0.05, 1.4))
+def test_unrolled_camera_keeps_the_horizon_level(yaw: float, pitch_down: float) -> None:
+    R = camera_rotation_from_view(yaw, pitch_down)
+    right, down = R[0], R[1]  # camera x and y axes in world coordinates
+    assert abs(right[2]) < 1e-12  # image rows are horizontal
+    assert down[2] < 0.0  # image y points down in the world
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    yaw=angles,
+    pitch_down=st.floats(0.05, 1.5),
+    height=st.floats(2.0, 60.0),
+    xy=st.tuples(st.floats(-1000.0, 1000.0), st.floats(-1000.0, 1000.0)),
+)
+def test_ground_point_straight_ahead_projects_to_the_principal_point(
+    yaw: float, pitch_down: float, height: float, xy: tuple[float, float]
+) -> None:
+    intrinsics = CameraIntrinsics(
+        width=1920,
+        height=1080,
+        fx=1200.0,
+        fy=1200.0,
+        cx=955.0,
+        cy=547.0,
+        dist=(-0.2, 0.05, 0.001, 0.001, 0.0),
+    )
+    camera = CameraModel.from_intrinsics(intrinsics)
+    R = camera_rotation_from_view(yaw, pitch_down)
+    center = np.array([xy[0], xy[1], height])
+    ahead_m = height / math.tan(pitch_down)
+    ground_point = center + np.array([ahead_m * math.cos(yaw), ahead_m * math.sin(yaw), -height])
+    pixels, depth = project_points(ground_point[None, :], R, -R @ center, camera)
+    np.testing.assert_allclose(pixels[0], [955.0, 547.0], atol=1e-6)
+    assert depth[0] == pytest.approx(math.hypot(ahead_m, height), rel=1e-9)
+    # A point to the camera's right on the ground appears right of the centre (u grows).
+    right_world = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
+    pixels_right, _ = project_points((ground_point + right_world)[None, :], R, -R @ center, camera)
+    assert pixels_right[0, 0] > 955.0

@@ -1,0 +1,495 @@
+"""pipeline.loaders: toolbox YAML and JSON files round-trip, and every bad input names its file and field."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.errors import InputError
+from pipeline.loaders import (
+    _fast_parse_stamped_rows,
+    format_toolbox_detections,
+    format_toolbox_poses,
+    load_calibration_result,
+    load_ground_truth,
+    load_intrinsics,
+    load_toolbox_detections,
+    load_toolbox_poses,
+    load_vehicle,
+    write_simulation_files,
+)
+from schemas.common import Box, CameraIntrinsics, VehicleProfile
+from schemas.files import GroundTruth, GroundTruthFrame
+from schemas.messages import DetectionFrame, VehiclePose
+from schemas.results import CalibrationResult, ReferenceFrame, Verdict
+
+T0 = 1_700_000_000_000_000_000
+INTRINSICS = CameraIntrinsics(
+    width=1920,
+    height=1080,
+    fx=1400.5,
+    fy=1399.25,
+    cx=961.3,
+    cy=540.7,
+    dist=(-0.21, 0.05, 0.001, -0.0005, 0.0),
+)
+VEHICLE = VehicleProfile(length=4.8, width=1.85, height=1.45, imu_offset=(1.35, 0.925, 0.4))
+# Written at 0.01 px: a corner is centre - size/2, so its error is at most 0.005 + 0.0025 px.
+BOX_TOL_PX = 0.0075 + 1e-9
+
+
+def _frames(camera_id: str = "camera", n: int = 5) -> list[DetectionFrame]:
+    frames = []
+    for i in range(n):
+        boxes = [
+            Box(
+                x1=100.0 + 13.37 * j + i,
+                y1=200.123 + j,
+                x2=180.456 + 13.37 * j + i,
+                y2=260.0 + 2 * j,
+                cls=4 + j % 4,
+            )
+            for j in range(i % 3 + 1)
+        ]
+        frames.append(DetectionFrame(camera_id=camera_id, stamp_ns=T0 + i * 66_666_667, boxes=boxes))
+    frames.append(DetectionFrame(camera_id=camera_id, stamp_ns=T0 + n * 66_666_667, boxes=[]))  # empty frame
+    return frames
+
+
+def _poses(n: int = 4) -> list[VehiclePose]:
+    return [
+        VehiclePose(
+            stamp_ns=T0 + i * 100_000_000,
+            x=691_234.5678 + i,
+            y=5_334_567.8912 - 0.5 * i,
+            z=512.3456,
+            yaw=-3.0 + 1.234567891 * i,
+            pitch=0.0123456789,
+            roll=-0.00987654321,
+        )
+        for i in range(n)
+    ]
+
+
+def _ground_truth(camera_id: str) -> GroundTruth:
+    return GroundTruth(
+        camera_id=camera_id,
+        crs="EPSG:32632",
+        origin=(691_000.0, 5_334_000.0, 500.0),
+        R=((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)),
+        t_utm=(-691_000.0, 510.0, -5_334_000.0),
+        t_local=(0.0, 10.0, 0.0),
+        camera_position_utm=(691_000.0, 5_334_000.0, 510.0),
+        intrinsics=INTRINSICS,
+        station_id=4711,
+        traversals=1,
+        frames=[
+            GroundTruthFrame(stamp_ns=T0, calib_box=0, traversal=0),
+            GroundTruthFrame(stamp_ns=T0 + 66_666_667),
+        ],
+    )
+
+
+@dataclass(frozen=True)
+class _Camera:
+    camera_id: str
+    intrinsics: CameraIntrinsics
+
+
+@dataclass(frozen=True)
+class _FakeSimulation:
+    """The SimulationResult fields write_simulation_files reads (the simulator is another module)."""
+
+    cameras: tuple[_Camera, ...]
+    detections: dict[str, list[DetectionFrame]]
+    poses: list[VehiclePose]
+    vehicle: VehicleProfile = VEHICLE
+    ground_truth: dict[str, GroundTruth] = field(default_factory=dict)
+
+
+def _write(tmp_path: Path, name: str, text: str) -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _assert_same_detections(got: list[DetectionFrame], want: list[DetectionFrame], camera_id: str) -> None:
+    assert [f.stamp_ns for f in got] == sorted(f.stamp_ns for f in want)
+    for frame_got, frame_want in zip(got, sorted(want, key=lambda f: f.stamp_ns), strict=True):
+        assert frame_got.camera_id == camera_id
+        assert len(frame_got.boxes) == len(frame_want.boxes)
+        for a, b in zip(frame_got.boxes, frame_want.boxes, strict=True):
+            assert a.cls == b.cls
+            for name in ("x1", "y1", "x2", "y2"):
+                assert abs(getattr(a, name) - getattr(b, name)) <= BOX_TOL_PX, name
+
+
+def _assert_same_poses(got: list[VehiclePose], want: list[VehiclePose]) -> None:
+    assert [p.stamp_ns for p in got] == [p.stamp_ns for p in want]
+    for a, b in zip(got, want, strict=True):
+        for name in ("x", "y", "z"):
+            assert abs(getattr(a, name) - getattr(b, name)) <= 0.0005 + 1e-6, name  # written in mm
+        for name in ("yaw", "pitch", "roll"):
+            assert abs(getattr(a, name) - getattr(b, name)) <= 5e-10 + 1e-12, name  # written in 1e-9 rad
+
+
+# ---------------------------------------------------------------------------------------------- round trips
+
+
+def test_detections_round_trip_within_written_precision(tmp_path: Path) -> None:
+    frames = _frames()
+    path = _write(tmp_path, "detections.yaml", format_toolbox_detections(reversed(frames)))
+    loaded = load_toolbox_detections(path, camera_id="cam-7")
+    _assert_same_detections(loaded, frames, "cam-7")
+    assert loaded[-1].boxes == []  # a frame without boxes is kept: the camera ran, nothing was seen
+    # The file is plain YAML any toolbox reader understands: centre, size, class.
+    raw = yaml.safe_load(path.read_text())
+    first = frames[0].boxes[0]
+    cx, cy, w, h, cls = raw[T0][0]
+    assert (cx, cy) == pytest.approx((0.5 * (first.x1 + first.x2), 0.5 * (first.y1 + first.y2)), abs=0.005)
+    assert (w, h, cls) == (
+        pytest.approx(first.x2 - first.x1, abs=0.005),
+        pytest.approx(first.y2 - first.y1, abs=0.005),
+        4,
+    )
+
+
+def test_poses_round_trip_within_written_precision(tmp_path: Path) -> None:
+    poses = _poses()
+    path = _write(tmp_path, "poses.yaml", format_toolbox_poses(reversed(poses)))
+    _assert_same_poses(load_toolbox_poses(path), poses)
+
+
+def test_block_style_toolbox_file_with_quoted_stamps(tmp_path: Path) -> None:
+    # Written by another tool: comments, quoted keys, nested block lists, ints for floats, class as 5.0.
+    text = f"""# detections from the reference toolbox
+'{T0 + 10}':
+  - - 110
+    - 220.5
+    - 20
+    - 10
+    - 5.0
+"{T0}": []
+{T0 + 5}:
+"""
+    frames = load_toolbox_detections(_write(tmp_path, "d.yaml", text))
+    assert [f.stamp_ns for f in frames] == [T0, T0 + 5, T0 + 10]
+    assert frames[0].boxes == [] and frames[1].boxes == []
+    assert frames[2].boxes == [Box(x1=100.0, y1=215.5, x2=120.0, y2=225.5, cls=5)]
+
+
+def test_empty_mapping_is_no_frames(tmp_path: Path) -> None:
+    assert load_toolbox_detections(_write(tmp_path, "d.yaml", format_toolbox_detections([]))) == []
+    assert load_toolbox_poses(_write(tmp_path, "p.yaml", format_toolbox_poses([]))) == []
+
+
+_int_text = st.integers(-(10**6), 10**6).map(str)
+_decimal_text = st.integers(-(10**9), 10**9).map(lambda i: f"{i / 1000:.3f}")
+# Tokens where YAML 1.1 and a naive parser disagree (octal, exponent without dot, sign...); one branch in
+# seventeen, so many generated files stay on the fast path.
+_odd_number_text = st.sampled_from(["0", "-0.0", "007", "1e3", "1.5e+3", ".5", "+1", "nan", "0x1F", "1_0"])
+_number_text = st.one_of(*[_int_text, _decimal_text] * 8, _odd_number_text)
+_row_text = st.tuples(st.lists(_number_text, max_size=6), st.sampled_from([", ", ",", " , "])).map(
+    lambda row: "[" + row[1].join(row[0]) + "]"
+)
+_key_text = st.tuples(st.integers(0, 10**19), st.sampled_from(["{}", "{}", "{}", "'{}'", '"{}"', "0{}"])).map(
+    lambda key: key[1].format(key[0])  # 0{}: octal in YAML 1.1
+)
+_entry_text = st.one_of(
+    st.tuples(_key_text, _row_text).map(lambda e: f"{e[0]}: {e[1]}"),
+    st.tuples(_key_text, st.sampled_from(["", "  ", "    "]), st.lists(_row_text, max_size=3)).map(
+        lambda e: "\n".join([f"{e[0]}:", *(f"{e[1]}- {row}" for row in e[2])])
+    ),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(entries=st.lists(_entry_text, max_size=6))
+def test_fast_parser_agrees_with_pyyaml(entries: list[str]) -> None:
+    # The fast path must give exactly what PyYAML gives, or decline (None) and let PyYAML decide.
+    text = "\n".join(entries) + "\n"
+    fast = _fast_parse_stamped_rows(text)
+    if fast is None:
+        return
+    expected = yaml.safe_load(text)
+    assert fast == expected
+    assert [
+        type(v) for row in fast.values() if isinstance(row, list) for v in row if not isinstance(v, list)
+    ] == [
+        type(v) for row in expected.values() if isinstance(row, list) for v in row if not isinstance(v, list)
+    ]
+
+
+def test_fast_parser_declines_other_layouts() -> None:
+    assert _fast_parse_stamped_rows("# comment\n1: [1, 2]\n") is None
+    assert _fast_parse_stamped_rows("1: [1e3]\n") is None  # YAML 1.1 reads 1e3 as a string
+    assert _fast_parse_stamped_rows("1: [1, 2]\n1: [3, 4]\n") is None  # duplicate: PyYAML reports the line
+    assert _fast_parse_stamped_rows("1:\n  - [1]\n    - [2]\n") is None  # inconsistent indentation
+    assert _fast_parse_stamped_rows("- [1, 2]\n") is None
+
+
+def test_intrinsics_and_vehicle_round_trip(tmp_path: Path) -> None:
+    sim = _FakeSimulation(cameras=(_Camera("camera", INTRINSICS),), detections={}, poses=[])
+    write_simulation_files(sim, tmp_path)  # type: ignore[arg-type]
+    assert load_intrinsics(tmp_path / "camera.yaml") == INTRINSICS
+    assert load_vehicle(tmp_path / "vehicle.yaml") == VEHICLE
+    # Keys exactly as DESIGN.md names them, in a file a human can edit.
+    assert set(yaml.safe_load((tmp_path / "camera.yaml").read_text())) == {
+        "width",
+        "height",
+        "fx",
+        "fy",
+        "cx",
+        "cy",
+        "dist",
+    }
+
+
+def test_hand_written_intrinsics_default_distortion(tmp_path: Path) -> None:
+    path = _write(
+        tmp_path, "camera.yaml", "width: 1280\nheight: 720\nfx: 1000\nfy: 1000.5\ncx: 640\ncy: 360\n"
+    )
+    assert load_intrinsics(path) == CameraIntrinsics(
+        width=1280, height=720, fx=1000.0, fy=1000.5, cx=640.0, cy=360.0
+    )
+
+
+def test_write_simulation_files_single_camera(tmp_path: Path) -> None:
+    frames, poses = _frames(), _poses()
+    sim = _FakeSimulation(
+        cameras=(_Camera("north", INTRINSICS),),
+        detections={"north": frames},
+        poses=poses,
+        ground_truth={"north": _ground_truth("north")},
+    )
+    written = write_simulation_files(sim, tmp_path / "out")  # type: ignore[arg-type]
+    names = sorted(p.name for p in written)
+    assert names == ["camera.yaml", "detections.yaml", "ground_truth.json", "poses.yaml", "vehicle.yaml"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == names  # no temporary files left behind
+    _assert_same_detections(
+        load_toolbox_detections(tmp_path / "out" / "detections.yaml", "north"), frames, "north"
+    )
+    _assert_same_poses(load_toolbox_poses(tmp_path / "out" / "poses.yaml"), poses)
+    assert load_ground_truth(tmp_path / "out" / "ground_truth.json") == _ground_truth("north")
+
+
+def test_write_simulation_files_several_cameras(tmp_path: Path) -> None:
+    other = INTRINSICS.model_copy(update={"fx": 900.0, "fy": 900.0})
+    sim = _FakeSimulation(
+        cameras=(_Camera("north", INTRINSICS), _Camera("south", other)),
+        detections={"north": _frames("north"), "south": _frames("south", n=2)},
+        poses=_poses(),
+        ground_truth={"north": _ground_truth("north"), "south": _ground_truth("south")},
+    )
+    written = write_simulation_files(sim, tmp_path)  # type: ignore[arg-type]
+    assert sorted(p.name for p in written) == [
+        "camera_north.yaml",
+        "camera_south.yaml",
+        "detections_north.yaml",
+        "detections_south.yaml",
+        "ground_truth_north.json",
+        "ground_truth_south.json",
+        "poses.yaml",
+        "vehicle.yaml",
+    ]
+    assert load_intrinsics(tmp_path / "camera_south.yaml") == other
+    _assert_same_detections(
+        load_toolbox_detections(tmp_path / "detections_south.yaml", "south"), _frames("south", n=2), "south"
+    )
+    assert load_ground_truth(tmp_path / "ground_truth_south.json").camera_id == "south"
+
+
+def test_calibration_result_round_trip(tmp_path: Path) -> None:
+    result = CalibrationResult(
+        rsu_id="rsu-1",
+        camera_id="north",
+        result_id="r-1",
+        created_at_ns=T0,
+        frame=ReferenceFrame(crs="EPSG:32632", origin=(691_000.0, 5_334_000.0, 500.0)),
+        R=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+        t=(0.1, 0.2, 0.3),
+        intrinsics=INTRINSICS,
+        verdict=Verdict(status="accepted"),
+    )
+    path = _write(tmp_path, "calib.json", result.model_dump_json(indent=2))
+    assert load_calibration_result(path) == result
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+
+_GOOD_ROW = "[100.0, 200.0, 20.0, 10.0, 4]"
+BAD_DETECTIONS = [
+    ("not: [valid\n", "(yaml): line"),
+    ("- [1, 2, 3, 4, 5]\n", "(root): expected a mapping"),
+    ("", "(root): the file is empty"),
+    (f"{T0}: [[100.0, 200.0, 20.0, 10.0]]\n", f"{T0}.0: expected 5 values"),
+    (f"{T0}: [[100.0, 200.0, 20.0, 10.0, 4, 1]]\n", f"{T0}.0: expected 5 values"),
+    (f"{T0}: [{_GOOD_ROW}, [.nan, 200.0, 20.0, 10.0, 4]]\n", f"{T0}.1.cx: must be finite"),
+    (f"{T0}: [[100.0, .inf, 20.0, 10.0, 4]]\n", f"{T0}.0.cy: must be finite"),
+    (f"{T0}: [[100.0, 200.0, 0.0, 10.0, 4]]\n", f"{T0}.0.w: box width must be > 0"),
+    (f"{T0}: [[100.0, 200.0, 20.0, -3.5, 4]]\n", f"{T0}.0.h: box height must be > 0"),
+    (f"{T0}: [[100.0, '200', 20.0, 10.0, 4]]\n", f"{T0}.0.cy: expected a number, got str"),
+    (f"{T0}: [[100.0, 200.0, 20.0, 10.0, true]]\n", f"{T0}.0.class_id: expected a number, got bool"),
+    (f"{T0}: [[100.0, 200.0, 20.0, 10.0, 4.5]]\n", f"{T0}.0.class_id: expected an integer class id"),
+    (f"{T0}: [[100.0, 200.0, 20.0, 10.0, 4000]]\n", f"{T0}: boxes.0.cls:"),
+    (f"{T0}: {{a: 1}}\n", f"{T0}: expected a list of boxes"),
+    (f"{T0}: [7]\n", f"{T0}.0: expected a list [cx, cy, w, h, class_id]"),
+    (f"1.7e+18: [{_GOOD_ROW}]\n", "stamp must be an integer (ns), got float"),
+    (f"'17000000000000000x': [{_GOOD_ROW}]\n", "stamp must be an integer (ns)"),
+    (f"1700000000: [{_GOOD_ROW}]\n", "1700000000: stamp 1700000000 is outside"),  # seconds, not ns
+    (f"{T0}: [{_GOOD_ROW}]\n'{T0}': []\n", "duplicate stamp"),
+    (f"{T0}: []\n{T0}: []\n", "duplicate key"),
+    (f"{T0}: [[1.0e+5, 200.0, 20.0, 10.0, 4]]\n", f"{T0}: boxes.0.x2:"),  # beyond any image
+    (f"{T0}: [[1{'0' * 5000}, 200.0, 20.0, 10.0, 4]]\n", "(yaml): Exceeds the limit"),  # int() refuses
+]
+
+
+@pytest.mark.parametrize(("text", "expected"), BAD_DETECTIONS)
+def test_bad_detections_name_file_and_field(tmp_path: Path, text: str, expected: str) -> None:
+    path = _write(tmp_path, "detections.yaml", text)
+    with pytest.raises(InputError) as info:
+        load_toolbox_detections(path)
+    assert info.value.source == str(path)
+    assert expected in info.value.detail
+    assert str(path) in str(info.value)
+
+
+BAD_POSES = [
+    (f"{T0}: [1.0, 2.0, 3.0, 0.1, 0.0]\n", f"{T0}: expected 6 values [x, y, z, yaw, pitch, roll], got 5"),
+    (f"{T0}: [1.0, 2.0, .nan, 0.1, 0.0, 0.0]\n", f"{T0}.z: must be finite"),
+    (f"{T0}: [1.0, 2.0, 3.0, -.inf, 0.0, 0.0]\n", f"{T0}.yaw: must be finite"),
+    (f"{T0}: [1.0, 2.0, 3.0, east, 0.0, 0.0]\n", f"{T0}.yaw: expected a number, got str"),
+    (f"{T0}: [1{'0' * 400}, 2.0, 3.0, 0.0, 0.0, 0.0]\n", f"{T0}.x: 1000"),  # an int beyond float range
+    (f"{T0}:\n", f"{T0}: expected a list [x, y, z, yaw, pitch, roll], got NoneType"),
+    ("[1, 2]\n", "(root): expected a mapping"),
+    (f"{T0}: [1.0, 2.0, 3.0, 0.1, 0.0, 0.0\n", "(yaml): line"),
+]
+
+
+@pytest.mark.parametrize(("text", "expected"), BAD_POSES)
+def test_bad_poses_name_file_and_field(tmp_path: Path, text: str, expected: str) -> None:
+    path = _write(tmp_path, "poses.yaml", text)
+    with pytest.raises(InputError) as info:
+        load_toolbox_poses(path)
+    assert info.value.source == str(path)
+    assert expected in info.value.detail
+
+
+_CAMERA = "width: 1280\nheight: 720\nfx: 1000.0\nfy: 1000.0\ncx: 640.0\ncy: 360.0\n"
+BAD_CAMERAS = [
+    (_CAMERA + "skew: 0.0\n", "skew: Extra inputs are not permitted"),
+    (_CAMERA.replace("fx: 1000.0\n", ""), "fx: Field required"),
+    (_CAMERA.replace("fx: 1000.0", "fx: '1000.0'"), "fx: Input should be a valid number"),
+    (_CAMERA.replace("fx: 1000.0", "fx: .nan"), "fx:"),
+    (_CAMERA.replace("width: 1280", "width: 1280.5"), "width:"),
+    (_CAMERA.replace("fy: 1000.0", "fy: -5.0"), "fy: Input should be greater than 0"),
+    (_CAMERA + "dist: [0.1, 0.2]\n", "dist"),
+    ("- width\n", "(root): expected a mapping of CameraIntrinsics fields, got list"),
+    ("width: [\n", "(yaml): line"),
+]
+
+
+@pytest.mark.parametrize(("text", "expected"), BAD_CAMERAS)
+def test_bad_intrinsics_name_file_and_field(tmp_path: Path, text: str, expected: str) -> None:
+    path = _write(tmp_path, "camera.yaml", text)
+    with pytest.raises(InputError) as info:
+        load_intrinsics(path)
+    assert info.value.source == str(path)
+    assert expected in info.value.detail
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (
+            "length: 4.5\nwidth: 1.8\nheight: 1.5\nimu_offset: [1.0, 0.9, 0.3]\nmass: 1500\n",
+            "mass: Extra inputs",
+        ),
+        ("length: 4.5\nwidth: 1.8\nheight: 1.5\nimu_offset: [1.0, 0.9]\n", "imu_offset"),
+        (
+            "length: -4.5\nwidth: 1.8\nheight: 1.5\nimu_offset: [1.0, 0.9, 0.3]\n",
+            "length: Input should be greater",
+        ),
+        (
+            "length: 2024-01-01\nwidth: 1.8\nheight: 1.5\nimu_offset: [1.0, 0.9, 0.3]\n",
+            "not JSON-representable",
+        ),
+    ],
+)
+def test_bad_vehicle_names_file_and_field(tmp_path: Path, text: str, expected: str) -> None:
+    path = _write(tmp_path, "vehicle.yaml", text)
+    with pytest.raises(InputError) as info:
+        load_vehicle(path)
+    assert info.value.source == str(path)
+    assert expected in info.value.detail
+
+
+@pytest.mark.parametrize(
+    "loader", [load_intrinsics, load_vehicle, load_toolbox_detections, load_toolbox_poses, load_ground_truth]
+)
+def test_missing_file_is_input_error(tmp_path: Path, loader: object) -> None:
+    path = tmp_path / "nope.yaml"
+    with pytest.raises(InputError) as info:
+        loader(path)  # type: ignore[operator]
+    assert info.value.source == str(path)
+    assert info.value.detail.startswith("(file): cannot read")
+
+
+def test_bad_json_files_name_field(tmp_path: Path) -> None:
+    truth = json.loads(_ground_truth("north").model_dump_json())
+    truth["frames"][1]["calib_box"] = -1
+    path = _write(tmp_path, "ground_truth.json", json.dumps(truth))
+    with pytest.raises(InputError, match=r"frames\.1\.calib_box"):
+        load_ground_truth(path)
+    path = _write(tmp_path, "calib.json", '{"rsu_id": "a",')
+    with pytest.raises(InputError, match="Invalid JSON") as info:
+        load_calibration_result(path)
+    assert info.value.source == str(path)
+    path = _write(tmp_path, "calib2.json", json.dumps({"rsu_id": "a", "camera_id": "b"}))
+    with pytest.raises(InputError, match="result_id: Field required"):
+        load_calibration_result(path)
+
+
+def test_non_utf8_file_is_input_error(tmp_path: Path) -> None:
+    path = tmp_path / "detections.yaml"
+    path.write_bytes(b"\xff\xfe\x00garbage: [")
+    with pytest.raises(InputError, match=r"\(yaml\)"):
+        load_toolbox_detections(path)
+
+
+def test_huge_float_row_overflowing_the_fast_check_still_loads(tmp_path: Path) -> None:
+    # Finite values whose sum overflows must take the per-value path, not be reported as non-finite.
+    path = _write(tmp_path, "poses.yaml", f"{T0}: [1.0e+308, 1.0e+308, 0.0, 0.0, 0.0, 0.0]\n")
+    (pose,) = load_toolbox_poses(path)
+    assert pose.x == 1e308 and math.isfinite(pose.y)
+
+
+_yaml_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+    lambda inner: (
+        st.lists(inner, max_size=6) | st.dictionaries(st.integers() | st.text(max_size=20), inner, max_size=4)
+    ),
+    max_leaves=30,
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(document=_yaml_values | st.text(max_size=200))
+def test_any_document_loads_or_raises_input_error(
+    tmp_path_factory: pytest.TempPathFactory, document: object
+) -> None:
+    # Whatever a file holds, the loaders answer with data or an InputError naming the file: never a crash.
+    path = tmp_path_factory.mktemp("fuzz") / "file.yaml"
+    path.write_text(document if isinstance(document, str) else yaml.safe_dump(document), encoding="utf-8")
+    for loader in (load_toolbox_detections, load_toolbox_poses, load_intrinsics, load_vehicle):
+        try:
+            loader(path)
+        except InputError as err:
+            assert err.source == str(path)

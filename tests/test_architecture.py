@@ -1,0 +1,65 @@
+"""Imports point one way, daemon -> pipeline -> schemas (DESIGN.md): checked on the real import graph."""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+OUR_PACKAGES = {"schemas", "pipeline", "daemon", "tests", "bench"}
+BUS_AND_RECORDING = ("zenoh", "mcap")
+
+
+def _module_names(package: str) -> list[str]:
+    return sorted(f"{package}.{p.stem}" for p in (ROOT / package).glob("*.py") if p.stem != "__init__")
+
+
+def _imported_top_levels(path: Path) -> set[str]:
+    """Top-level names of every absolute import in a file, including imports inside functions."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_pipeline_never_loads_zenoh_or_mcap() -> None:
+    modules = ["pipeline", *_module_names("pipeline")]
+    script = (
+        "import importlib, json, sys\n"
+        f"for name in {modules!r}:\n"
+        "    importlib.import_module(name)\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    loaded = set(json.loads(done.stdout.strip().splitlines()[-1]))
+    assert set(modules) <= loaded
+    for forbidden in BUS_AND_RECORDING:
+        offenders = sorted(m for m in loaded if m == forbidden or m.startswith(forbidden + "."))
+        assert not offenders, f"importing pipeline loaded {offenders}; only daemon/ may use {forbidden}"
+    assert not [m for m in loaded if m == "daemon" or m.startswith("daemon.")], "pipeline imports daemon"
+
+
+def test_schemas_import_nothing_of_ours() -> None:
+    for path in sorted((ROOT / "schemas").glob("*.py")):
+        ours = _imported_top_levels(path) & (OUR_PACKAGES - {"schemas"})
+        assert not ours, f"{path.relative_to(ROOT)} imports {sorted(ours)}; schemas/ must stand alone"
+
+
+def test_pipeline_imports_neither_daemon_nor_the_bus() -> None:
+    for path in sorted((ROOT / "pipeline").glob("*.py")):
+        bad = _imported_top_levels(path) & {"daemon", "tests", "bench", *BUS_AND_RECORDING}
+        assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
