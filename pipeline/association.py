@@ -1,0 +1,138 @@
+"""Vehicle poses -> vehicle states at camera stamps (paper Sec. III-B, plus a known clock offset).
+
+`make_trajectory` turns the calibration vehicle's reported poses (absolute UTM, vehicle clock, possibly out
+of order or repeated) into a `Trajectory` in the local frame on the camera clock; `interpolate_poses`
+evaluates it at detection stamps, refusing where the poses cannot vouch for the vehicle's state (dropouts,
+stamps outside the recorded span). The paper assumes synchronous clocks; a known offset is removed here.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.arrays import FloatArray, Mask, PoseArray, Stamps, check_shape
+from pipeline.errors import InputError, ShapeError
+from pipeline.frames import poses_to_array
+from schemas.common import LocalOrigin
+from schemas.messages import VehiclePose
+
+_YAW = 3  # PoseArray column of the yaw; the others (x, y, z, pitch, roll) interpolate linearly
+
+
+@dataclass(frozen=True, slots=True)
+class AssociationParams:
+    max_pose_gap_ns: int = 1_500_000_000  # bracketing poses further apart -> no pose (1 Hz still works)
+    max_extrapolation_ns: int = 0  # how far beyond the first/last pose a stamp may lie
+    time_offset_ns: int = 0  # vehicle clock minus camera clock (subtracted from pose stamps)
+
+    def __post_init__(self) -> None:
+        for name in ("max_pose_gap_ns", "max_extrapolation_ns"):
+            if getattr(self, name) < 0:
+                raise InputError("association", f"{name} = {getattr(self, name)} must be >= 0")
+
+
+@dataclass(frozen=True, slots=True)
+class Trajectory:
+    """The calibration vehicle's poses on the camera clock.
+
+    stamps: (N,) int64 ns, camera clock, strictly increasing.
+    poses:  (N, 6) x, y, z (m, local frame), yaw, pitch, roll (rad); yaw wrapped to [-pi, pi].
+    """
+
+    stamps: Stamps
+    poses: PoseArray
+
+    def __post_init__(self) -> None:
+        check_shape(self.stamps, "N", name="trajectory.stamps")
+        check_shape(self.poses, "N,6", name="trajectory.poses")
+        if len(self.stamps) != len(self.poses):
+            raise ShapeError(f"trajectory: {len(self.stamps)} stamps but {len(self.poses)} poses")
+        if np.any(np.diff(self.stamps) <= 0):
+            raise ShapeError("trajectory.stamps: must be strictly increasing")
+
+
+def wrap_angle(angle: FloatArray) -> FloatArray:
+    """Angles (rad) wrapped to [-pi, pi]; values already inside are returned bit-exact."""
+    # a - 2 pi round(a / 2 pi) leaves in-range values untouched, unlike angle(exp(1j a)) which rounds them.
+    return np.asarray(angle - 2.0 * math.pi * np.round(angle / (2.0 * math.pi)), dtype=np.float64)
+
+
+def make_trajectory(
+    poses: Sequence[VehiclePose], origin: LocalOrigin, params: AssociationParams
+) -> Trajectory:
+    """Reported poses -> Trajectory (paper III-B pre-processing).
+
+    Sorts by stamp, drops exact duplicate stamps (the first received wins: a repeated stamp is a re-sent
+    or conflicting message and the earliest is what the vehicle first committed to), subtracts `origin`
+    (absolute UTM -> local frame, m) and moves the stamps onto the camera clock: pose stamps are in the
+    vehicle clock = camera clock + `params.time_offset_ns`. An empty input gives an empty trajectory.
+    """
+    stamps_vehicle, local = poses_to_array(list(poses), origin)
+    # Stable sort so that among equal stamps the first in input order comes first and is the one kept.
+    order = np.argsort(stamps_vehicle, kind="stable")
+    stamps_vehicle, local = stamps_vehicle[order], local[order]
+    is_first = np.ones(len(stamps_vehicle), dtype=bool)
+    is_first[1:] = np.diff(stamps_vehicle) != 0
+    local = local[is_first]
+    local[:, _YAW] = wrap_angle(local[:, _YAW])
+    stamps_camera = stamps_vehicle[is_first] - np.int64(params.time_offset_ns)
+    return Trajectory(stamps=stamps_camera, poses=local)
+
+
+def interpolate_poses(
+    trajectory: Trajectory, stamps: Stamps, params: AssociationParams
+) -> tuple[PoseArray, Mask]:
+    """Vehicle pose at each camera stamp (paper III-B): (M,) int64 ns, camera clock -> ((M, 6), (M,) bool).
+
+    Between two poses, x, y, z, pitch and roll interpolate linearly and yaw along the shorter arc of the
+    circle (wrapped to [-pi, pi]). A row is valid (mask True) when the stamp equals a pose stamp, or lies
+    between two poses at most `max_pose_gap_ns` apart (a longer gap is a dropout: the vehicle may have
+    turned or stopped in it), or lies within `max_extrapolation_ns` before the first / after the last pose
+    (extrapolated linearly along the end segment when that segment is no dropout, else held). Invalid rows
+    are NaN. `params.time_offset_ns` is NOT applied again: the trajectory is already on the camera clock.
+    Vectorised (searchsorted), so 1 Hz and 100 Hz pose rates cost the same; `stamps` need not be sorted.
+    """
+    check_shape(stamps, "N", name="stamps")
+    if not np.issubdtype(stamps.dtype, np.integer):
+        raise ShapeError(f"stamps: expected integer nanoseconds, got dtype {stamps.dtype}")
+    query = stamps.astype(np.int64)
+    count = len(trajectory.stamps)
+    result = np.full((len(query), 6), np.nan)
+    if count == 0 or len(query) == 0:
+        return result, np.zeros(len(query), dtype=bool)
+    known = trajectory.stamps
+    if count == 1:
+        is_valid = np.abs(query - known[0]) <= params.max_extrapolation_ns
+        result[is_valid] = trajectory.poses[0]
+        return result, is_valid
+
+    # Segment [lo, lo + 1] for every query; end segments are reused for stamps beyond either end.
+    lo = np.clip(np.searchsorted(known, query, side="right") - 1, 0, count - 2)
+    hi = lo + 1
+    segment_ns = known[hi] - known[lo]
+    weight = (query - known[lo]).astype(np.float64) / segment_ns.astype(np.float64)
+    is_short_segment = segment_ns <= params.max_pose_gap_ns
+    before, after = query < known[0], query > known[-1]
+    outside = before | after
+    # Beyond the ends: extrapolate along the end segment only when it is no dropout, otherwise hold the pose.
+    weight = np.where(outside & ~is_short_segment, np.where(before, 0.0, 1.0), weight)
+
+    pose_lo, pose_hi = trajectory.poses[lo], trajectory.poses[hi]
+    # (1 - w) a + w b (not a + w (b - a)) is exact at w = 0 and w = 1.
+    result = (1.0 - weight)[:, None] * pose_lo + weight[:, None] * pose_hi
+    yaw_step = wrap_angle(pose_hi[:, _YAW] - pose_lo[:, _YAW])
+    result[:, _YAW] = wrap_angle(pose_lo[:, _YAW] + weight * yaw_step)
+    # Exactly at a pose stamp: return that pose bit-exact, whatever its neighbours.
+    at_lo, at_hi = query == known[lo], query == known[hi]
+    result[at_lo] = pose_lo[at_lo]
+    result[at_hi] = pose_hi[at_hi]
+
+    distance_outside = np.where(before, known[0] - query, np.where(after, query - known[-1], 0))
+    is_valid = np.where(outside, distance_outside <= params.max_extrapolation_ns, is_short_segment)
+    is_valid |= at_lo | at_hi
+    result[~is_valid] = np.nan
+    return result, is_valid

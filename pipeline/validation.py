@@ -1,0 +1,144 @@
+"""Validation (paper Sec. IV-B metrics as gates, DESIGN.md 'Validation gates'): evidence -> Verdict.
+
+A wrong calibration is worse than none: every gate that fails adds a reason and the verdict is refused.
+Traversals are counted from the data, not trusted from the caller: two tracks belong to separate traversals
+only if the calibration vehicle left the camera's view between them (its projected position under the
+candidate calibration went out of the image, or beyond detection range).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.arrays import PoseArray, Rotation, Stamps, Vec3, check_shape
+from pipeline.camera import CameraModel, project_points
+from schemas.results import Verdict
+
+
+@dataclass(frozen=True, slots=True)
+class ValidationGates:
+    """Defaults from DESIGN.md; all configurable."""
+
+    min_traversals: int = 2
+    max_delta_p_mean_m: float = 0.5
+    min_camera_height_m: float = 2.0
+    max_camera_height_m: float = 60.0
+    max_position_std_m: float = 0.5
+    max_rotation_std_deg: float = 0.5
+    min_correspondences: int = 30
+    max_box_rmse_px: float = 15.0
+
+
+@dataclass(frozen=True, slots=True)
+class ValidationEvidence:
+    """What the gates look at, all measured on the merged calibration-vehicle tracks of the chosen group."""
+
+    traversals: int
+    tracks: int
+    correspondences: int
+    delta_p_mean_m: float
+    camera_height_m: float
+    position_std_m: float
+    rotation_std_deg: float
+    box_rmse_px: float
+    extra_reasons: tuple[str, ...] = ()
+
+
+def validate(evidence: ValidationEvidence, gates: ValidationGates) -> Verdict:
+    """Apply every gate; accepted only if all pass. Reasons name the quantity, its value and the limit."""
+    reasons: list[str] = list(evidence.extra_reasons)
+    e, g = evidence, gates
+    if e.traversals < max(2, g.min_traversals):
+        reasons.append(
+            f"traversals = {e.traversals} < {max(2, g.min_traversals)}: the vehicle must be seen on "
+            "at least two separate drive-pasts"
+        )
+    if e.correspondences < g.min_correspondences:
+        reasons.append(f"correspondences = {e.correspondences} < {g.min_correspondences}")
+    if not np.isfinite(e.delta_p_mean_m) or e.delta_p_mean_m > g.max_delta_p_mean_m:
+        reasons.append(f"delta_p mean = {e.delta_p_mean_m:.3f} m > {g.max_delta_p_mean_m} m")
+    if not (g.min_camera_height_m <= e.camera_height_m <= g.max_camera_height_m):
+        reasons.append(
+            f"camera height = {e.camera_height_m:.2f} m above the fitted ground outside "
+            f"[{g.min_camera_height_m}, {g.max_camera_height_m}] m"
+        )
+    if not np.isfinite(e.position_std_m) or e.position_std_m > g.max_position_std_m:
+        reasons.append(
+            f"position std = {e.position_std_m:.3f} m > {g.max_position_std_m} m: the data leave the "
+            "camera position unfixed in some direction"
+        )
+    if not np.isfinite(e.rotation_std_deg) or e.rotation_std_deg > g.max_rotation_std_deg:
+        reasons.append(
+            f"rotation std = {e.rotation_std_deg:.3f} deg > {g.max_rotation_std_deg} deg: the data "
+            "leave a rotation unfixed (e.g. all passes along one straight line)"
+        )
+    if not np.isfinite(e.box_rmse_px) or e.box_rmse_px > g.max_box_rmse_px:
+        reasons.append(f"whole-box RMSE = {e.box_rmse_px:.2f} px > {g.max_box_rmse_px} px")
+    return Verdict(status="refused" if reasons else "accepted", reasons=reasons)
+
+
+def count_traversals(
+    track_spans: Sequence[tuple[int, int]],
+    trajectory_stamps: Stamps,
+    trajectory_poses: PoseArray,
+    R_cam_from_local: Rotation,
+    t_cam_from_local: Vec3,
+    camera: CameraModel,
+    max_range_m: float = 250.0,
+    min_absence_ns: int = 2_000_000_000,
+) -> int:
+    """Number of separate drive-pasts among tracks with time spans [(start_ns, end_ns), ...].
+
+    Tracks are sorted by start; consecutive ones belong to one traversal unless, in the gap between them,
+    the vehicle's reference point projected with the candidate calibration was outside the image (or behind
+    the camera, or farther than `max_range_m`) for at least `min_absence_ns`. A track fragmented by an
+    occlusion therefore never counts twice, and a second drive-past always counts once more.
+    """
+    check_shape(trajectory_poses, "N,6", name="trajectory_poses")
+    if not track_spans:
+        return 0
+    spans = sorted(track_spans)
+    camera_center = -R_cam_from_local.T @ t_cam_from_local
+    pixels, depth = project_points(trajectory_poses[:, :3], R_cam_from_local, t_cam_from_local, camera)
+    distance = np.linalg.norm(trajectory_poses[:, :3] - camera_center, axis=1)
+    with np.errstate(invalid="ignore"):
+        in_view = (
+            (depth > 0)
+            & (distance <= max_range_m)
+            & (pixels[:, 0] >= 0)
+            & (pixels[:, 0] <= camera.width)
+            & (pixels[:, 1] >= 0)
+            & (pixels[:, 1] <= camera.height)
+        )
+    traversals = 1
+    current_end = spans[0][1]
+    for start, end in spans[1:]:
+        if start > current_end and _was_absent(
+            trajectory_stamps, in_view, current_end, start, min_absence_ns
+        ):
+            traversals += 1
+        current_end = max(current_end, end)
+    return traversals
+
+
+def _was_absent(stamps: Stamps, in_view: np.ndarray, start_ns: int, end_ns: int, min_absence_ns: int) -> bool:
+    """True if the vehicle was out of view for a contiguous stretch >= min_absence_ns within (start, end).
+
+    A gap in the trajectory itself (no poses) of that length also counts as absence only if the poses
+    bracketing it are out of view: missing data never proves the vehicle left.
+    """
+    lo, hi = np.searchsorted(stamps, [start_ns, end_ns])
+    if hi - lo < 2:
+        return False
+    window_stamps = stamps[lo:hi]
+    out = ~in_view[lo:hi]
+    if not out.any():
+        return False
+    # Longest run of consecutive out-of-view samples, measured in time between its first and last sample.
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], out.astype(np.int8), [0]])))
+    run_starts, run_ends = edges[::2], edges[1::2] - 1
+    longest = np.max(window_stamps[run_ends] - window_stamps[run_starts])
+    return bool(longest >= min_absence_ns)
