@@ -1,0 +1,564 @@
+"""calibrate(): the paper's pipeline (Sec. III) composed, plus whole-box refinement and validation gates.
+
+Input: one camera's detections, the calibration vehicle's reported poses (absolute UTM), its profile and the
+camera intrinsics. Output: a CalibrationResult (accepted or refused with reasons) and a report of what each
+stage kept and discarded. The daemon's jobs and `rsucal calibrate` make this same call.
+
+Stages: pose association -> image tracking -> hypotheses (EPnP + RANSAC) -> grouping (r_out, r_ov, r_sim,
+graph, DBSCAN) -> refinement per hypothesis and per merged group (paper: bottom edge <-> footprint corner;
+ours: whole-box robust least squares, which also fixes the direction bottom edges cannot see: a shift along
+the camera's x axis leaves every bottom edge, and delta_p, unchanged) -> selection -> validation.
+
+Selection never rests on delta_p alone: a group is ranked by how well the calibration vehicle's cuboid,
+projected with the group's pose, reproduces its boxes (scale-free whole-box error), then by traversals;
+two groups that fit about equally well with different poses make the result ambiguous and it is refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.arrays import FloatArray, Rotation, Vec3
+from pipeline.association import AssociationParams, Trajectory, make_trajectory
+from pipeline.camera import CameraModel, quaternion_wxyz_from_rotation, rotation_angle_rad
+from pipeline.errors import DegenerateGeometry
+from pipeline.frames import UtmFrame
+from pipeline.ground import GroundPlaneFit, fit_ground_plane
+from pipeline.grouping import GroupingParams, group_hypotheses
+from pipeline.hypotheses import Hypothesis, HypothesisParams, MatchedTrack, create_hypotheses, match_tracks
+from pipeline.metrics import DeltaPSummary, delta_p
+from pipeline.refinement import (
+    Refinement,
+    RefinementParams,
+    box_residuals,
+    refine_bottom_edge,
+    refine_whole_box,
+)
+from pipeline.tracking import TrackingParams, frames_from_detections, track_boxes
+from pipeline.validation import ValidationEvidence, ValidationGates, count_traversals, validate
+from pipeline.vehicle import body_points_to_world, footprint_corners
+from schemas.common import CameraIntrinsics, LocalOrigin, VehicleProfile
+from schemas.messages import DetectionFrame, VehiclePose
+from schemas.results import (
+    SCHEMA_VERSION,
+    CalibrationResult,
+    CameraPosition,
+    GroundPlane,
+    Provenance,
+    Quality,
+    ReferenceFrame,
+    Uncertainty,
+    Verdict,
+)
+
+SOFTWARE_VERSION = "0.1.0"
+
+ProgressCallback = Callable[[str, float], None]
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationInputs:
+    """Everything one calibration job needs; poses in absolute UTM of `crs`, stamps in their own clocks."""
+
+    rsu_id: str
+    camera_id: str
+    intrinsics: CameraIntrinsics
+    vehicle: VehicleProfile
+    detections: Sequence[DetectionFrame]
+    poses: Sequence[VehiclePose]
+    crs: str
+    time_offset_ns: int = 0  # vehicle clock minus camera clock, when known
+    station_id: int | None = None
+    recordings: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class SelectionParams:
+    """How candidate groups are compared (ours; the paper picks the lowest delta_p)."""
+
+    # Two groups whose scale-free box errors are within this factor of each other are a tie ...
+    tie_ratio: float = 1.25
+    # ... and a tie between poses further apart than this is an ambiguity: refuse.
+    ambiguity_shift_m: float = 1.0
+    ambiguity_angle_deg: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class PipelineParams:
+    """Parameters of every stage; defaults are the tested ones."""
+
+    association: AssociationParams = field(default_factory=AssociationParams)
+    tracking: TrackingParams = field(default_factory=TrackingParams)
+    hypotheses: HypothesisParams = field(default_factory=HypothesisParams)
+    grouping: GroupingParams = field(default_factory=GroupingParams)
+    refinement: RefinementParams = field(default_factory=RefinementParams)
+    selection: SelectionParams = field(default_factory=SelectionParams)
+    gates: ValidationGates = field(default_factory=ValidationGates)
+
+
+@dataclass(frozen=True, slots=True)
+class StageReport:
+    """What one stage kept and discarded, and why (for --verbose and the daemon's status)."""
+
+    stage: str
+    kept: int
+    discarded: int
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Candidate:
+    """One hypothesis group after refinement: its tracks, poses and scores."""
+
+    track_ids: tuple[int, ...]
+    paper: Refinement  # bottom-edge refinement of the merged group (paper III-F)
+    whole_box: Refinement  # our final refinement, started from the best of the paper's
+    box_error_rel: float  # median over boxes of max |edge residual| / box height (scale-free)
+    metrics: DeltaPSummary  # paper IV-B on the merged tracks with the whole-box pose
+    traversals: int
+
+    @property
+    def delta_p_mean_m(self) -> float:
+        value = self.metrics.delta_p_mean_m
+        return float("inf") if value is None else value
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationOutcome:
+    result: CalibrationResult
+    stages: tuple[StageReport, ...]
+    candidates: tuple[Candidate, ...]
+    chosen: Candidate | None
+
+
+def calibrate(
+    inputs: CalibrationInputs,
+    params: PipelineParams,
+    rng: np.random.Generator,
+    progress: ProgressCallback | None = None,
+    created_at_ns: int | None = None,
+) -> CalibrationOutcome:
+    """Estimate one camera's extrinsic from a calibration vehicle driving past (paper Sec. III + ours)."""
+    report: list[StageReport] = []
+    say = progress or (lambda _stage, _fraction: None)
+    camera = CameraModel.from_intrinsics(inputs.intrinsics)
+    created = created_at_ns if created_at_ns is not None else time.time_ns()
+
+    def refuse(reason: str, origin: LocalOrigin | None = None) -> CalibrationOutcome:
+        result = _refused_result(inputs, origin, created, [reason])
+        return CalibrationOutcome(result, tuple(report), (), None)
+
+    if not inputs.poses:
+        return refuse("no calibration-vehicle poses in the data window")
+    if not inputs.detections:
+        return refuse("no detections from this camera in the data window")
+
+    # Stage 1: poses into the local frame, on the camera clock.
+    say("association", 0.0)
+    origin = _local_origin(inputs.poses, inputs.crs)
+    association = AssociationParams(
+        max_pose_gap_ns=params.association.max_pose_gap_ns,
+        max_extrapolation_ns=params.association.max_extrapolation_ns,
+        time_offset_ns=inputs.time_offset_ns,
+    )
+    trajectory = make_trajectory(inputs.poses, origin, association)
+
+    # Stage 2: image tracks.
+    say("tracking", 0.1)
+    frames = frames_from_detections(inputs.detections)
+    track_set = track_boxes(frames, camera.width, camera.height, params.tracking)
+    report.append(
+        StageReport(
+            "tracking",
+            len(track_set.tracks),
+            track_set.border_boxes_dropped,
+            (
+                f"{len(frames)} frames, {sum(len(f.boxes) for f in frames)} boxes, "
+                f"{track_set.border_boxes_dropped} boxes touching the border dropped",
+            ),
+        )
+    )
+    matched = match_tracks(track_set.tracks, trajectory, association)
+    report.append(
+        StageReport(
+            "association",
+            len(matched),
+            len(track_set.tracks) - len(matched),
+            (f"{len(matched)} tracks overlap the vehicle's poses in time",),
+        )
+    )
+    if not matched:
+        return refuse("no image track overlaps the calibration vehicle's poses in time", origin)
+
+    # Ground plane for the below-ground test: the vehicle's footprint while any track was visible.
+    try:
+        ground = fit_ground_plane(_footprint_centres(trajectory, matched, inputs.vehicle))
+    except DegenerateGeometry as err:
+        return refuse(f"ground plane: {err}", origin)
+
+    # Stage 3: one hypothesis per track.
+    say("hypotheses", 0.25)
+    hypothesis_set = create_hypotheses(
+        matched, camera, inputs.vehicle, ground, params.hypotheses, rng, trajectory=trajectory
+    )
+    report.append(
+        StageReport(
+            "hypotheses",
+            len(hypothesis_set.hypotheses),
+            len(hypothesis_set.rejected),
+            _summarise_reasons(hypothesis_set.rejected),
+        )
+    )
+    if not hypothesis_set.hypotheses:
+        return refuse("no track gave a plausible camera pose (EPnP + RANSAC)", origin)
+
+    # Stage 4: grouping.
+    say("grouping", 0.45)
+    tracks_by_id = {m.track_id: m for m in matched}
+    grouping = group_hypotheses(hypothesis_set, tracks_by_id, frames, camera, inputs.vehicle, params.grouping)
+    report.append(
+        StageReport(
+            "grouping",
+            len(grouping.groups),
+            len(grouping.discarded),
+            tuple(f"group {i}: tracks {list(g.track_ids)}" for i, g in enumerate(grouping.groups))
+            + _summarise_reasons(grouping.discarded),
+        )
+    )
+    if not grouping.groups:
+        return refuse(
+            "no two hypotheses agree: the calibration vehicle was not seen on two separate traversals",
+            origin,
+        )
+
+    # Stage 5: refinement of every group.
+    hypotheses_by_id = {h.track_id: h for h in hypothesis_set.hypotheses}
+    candidates: list[Candidate] = []
+    notes: list[str] = []
+    for index, group in enumerate(grouping.groups):
+        say("refinement", 0.55 + 0.35 * index / len(grouping.groups))
+        members = [tracks_by_id[i] for i in group.track_ids]
+        starts = [hypotheses_by_id[i] for i in group.track_ids]
+        try:
+            candidate = _refine_group(members, starts, trajectory, camera, inputs.vehicle, params)
+        except DegenerateGeometry as err:
+            notes.append(f"group {index}: refinement failed: {err}")
+            continue
+        candidates.append(candidate)
+        notes.append(
+            f"group {index}: tracks {list(group.track_ids)}, {candidate.traversals} traversal(s), "
+            f"box error {100 * candidate.box_error_rel:.2f} %, delta_p {candidate.delta_p_mean_m:.3f} m, "
+            f"paper refinement delta_p {float(np.nanmean(candidate.paper.delta_p_m)):.3f} m"
+        )
+    report.append(
+        StageReport("refinement", len(candidates), len(grouping.groups) - len(candidates), tuple(notes))
+    )
+    if not candidates:
+        return refuse("refinement failed for every hypothesis group", origin)
+
+    # Selection and validation.
+    say("validation", 0.92)
+    chosen, ambiguity = _select(candidates, params.selection)
+    final_ground = fit_ground_plane(
+        np.concatenate(
+            [_footprint_centres_of(m.poses, inputs.vehicle) for m in _tracks_of(chosen, tracks_by_id)]
+        )
+    )
+    refined = chosen.whole_box
+    camera_height = float(final_ground.height_of(refined.camera_center[None, :])[0])
+    evidence = ValidationEvidence(
+        traversals=chosen.traversals,
+        tracks=len(chosen.track_ids),
+        correspondences=int(refined.used_residuals),
+        delta_p_mean_m=chosen.delta_p_mean_m,
+        camera_height_m=camera_height,
+        position_std_m=refined.position_std_m,
+        rotation_std_deg=refined.rotation_std_deg,
+        box_error_pct=100.0 * chosen.box_error_rel,
+        extra_reasons=(ambiguity,) if ambiguity else (),
+    )
+    verdict = validate(evidence, params.gates)
+    result = _result(inputs, origin, created, chosen, final_ground, camera, verdict, trajectory)
+    report.append(
+        StageReport(
+            "validation",
+            1 if verdict.is_accepted else 0,
+            0 if verdict.is_accepted else 1,
+            tuple(verdict.reasons) or ("all gates passed",),
+        )
+    )
+    say("done", 1.0)
+    return CalibrationOutcome(result, tuple(report), tuple(candidates), chosen)
+
+
+def _refine_group(
+    members: Sequence[MatchedTrack],
+    starts: Sequence[Hypothesis],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: PipelineParams,
+) -> Candidate:
+    """Paper III-F: refine each hypothesis on its own track, merge, refine again; keep the merge only if no
+    single hypothesis beats it on the merged tracks. Then our whole-box refinement from the winner."""
+    ground = fit_ground_plane(np.concatenate([_footprint_centres_of(m.poses, vehicle) for m in members]))
+    refinement = params.refinement
+    singles = [
+        refine_bottom_edge(h.R_cam_from_local, h.t_cam_from_local, [m], camera, vehicle, ground, refinement)
+        for h, m in zip(starts, members, strict=True)
+    ]
+    # Start the merged refinement from the single whose pose explains all member tracks best.
+    start_scores = [
+        _box_error(s.R_cam_from_local, s.t_cam_from_local, members, camera, vehicle, refinement)
+        for s in singles
+    ]
+    best_single = singles[int(np.argmin(start_scores))]
+    merged = refine_bottom_edge(
+        best_single.R_cam_from_local,
+        best_single.t_cam_from_local,
+        members,
+        camera,
+        vehicle,
+        ground,
+        refinement,
+    )
+    merged_score = _box_error(
+        merged.R_cam_from_local, merged.t_cam_from_local, members, camera, vehicle, refinement
+    )
+    paper = merged if merged_score <= min(start_scores) else best_single
+
+    # Ours: whole-box robust least squares over all merged boxes, from the paper's result and from the best
+    # single start (the bottom edge cannot fix the camera-x shift, so its result can be the worse start).
+    finals = [
+        refine_whole_box(
+            start.R_cam_from_local, start.t_cam_from_local, members, camera, vehicle, refinement, ground
+        )
+        for start in (paper, best_single)
+    ]
+    whole_box = min(finals, key=lambda r: r.cost)
+    box_error = _box_error(
+        whole_box.R_cam_from_local, whole_box.t_cam_from_local, members, camera, vehicle, refinement
+    )
+    metrics = _delta_p_on(members, whole_box.R_cam_from_local, whole_box.t_cam_from_local, camera, vehicle)
+    spans = [(int(m.stamps[0]), int(m.stamps[-1])) for m in members]
+    traversals = count_traversals(
+        spans,
+        trajectory.stamps,
+        trajectory.poses,
+        whole_box.R_cam_from_local,
+        whole_box.t_cam_from_local,
+        camera,
+    )
+    return Candidate(
+        track_ids=tuple(m.track_id for m in members),
+        paper=paper,
+        whole_box=whole_box,
+        box_error_rel=box_error,
+        metrics=metrics,
+        traversals=traversals,
+    )
+
+
+def _box_error(
+    R: Rotation,
+    t: Vec3,
+    members: Sequence[MatchedTrack],
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    refinement: RefinementParams,
+) -> float:
+    """Scale-free whole-box misfit: median over boxes of max |edge residual| / box height.
+
+    The calibration vehicle's cuboid projected with the right pose reproduces its own boxes to the detector's
+    noise (~1-2 %); a pose made from another vehicle's track cannot match the calibration vehicle's size and
+    shape along a whole drive-past."""
+    residuals, heights = box_residuals(R, t, members, camera, vehicle, refinement)
+    per_box = np.nanmax(np.abs(residuals), axis=1) / heights
+    per_box = per_box[np.isfinite(per_box)]
+    return float(np.median(per_box)) if len(per_box) else float("inf")
+
+
+def _delta_p_on(
+    members: Sequence[MatchedTrack], R: Rotation, t: Vec3, camera: CameraModel, vehicle: VehicleProfile
+) -> DeltaPSummary:
+    """Paper IV-B metrics on the merged tracks, each box against the plane of its own (reported) footprint:
+    the local road surface, right on slopes where the track's PCA plane is not."""
+    boxes = np.concatenate([m.boxes for m in members])
+    footprints = footprint_corners(np.concatenate([m.poses for m in members]), vehicle)
+    return delta_p(boxes, footprints, R, t, camera).summary()
+
+
+def _select(candidates: Sequence[Candidate], params: SelectionParams) -> tuple[Candidate, str]:
+    """Best candidate by scale-free box error (groups seen on >= 2 traversals first); refuse-worthy ambiguity
+    when another candidate fits about as well with a clearly different pose."""
+    ranked = sorted(
+        candidates, key=lambda c: (c.traversals < 2, c.box_error_rel, -c.traversals, c.delta_p_mean_m)
+    )
+    best = ranked[0]
+    for other in ranked[1:]:
+        if other.traversals < 2 or other.box_error_rel > params.tie_ratio * best.box_error_rel:
+            continue
+        shift = float(np.linalg.norm(other.whole_box.camera_center - best.whole_box.camera_center))
+        angle = float(
+            np.degrees(rotation_angle_rad(other.whole_box.R_cam_from_local, best.whole_box.R_cam_from_local))
+        )
+        if shift > params.ambiguity_shift_m or angle > params.ambiguity_angle_deg:
+            return best, (
+                f"ambiguous: tracks {list(other.track_ids)} fit about as well "
+                f"(box error {100 * other.box_error_rel:.2f} % vs {100 * best.box_error_rel:.2f} %) "
+                f"with a pose {shift:.2f} m / {angle:.2f} deg away"
+            )
+    return best, ""
+
+
+def _local_origin(poses: Sequence[VehiclePose], crs: str) -> LocalOrigin:
+    """Median of the reported positions, rounded to the metre (readable, and exact in float64)."""
+    xyz = np.array([[p.x, p.y, p.z] for p in poses])
+    centre = np.round(np.median(xyz, axis=0))
+    return LocalOrigin(crs=crs, x=float(centre[0]), y=float(centre[1]), z=float(centre[2]))
+
+
+def _footprint_centres_of(poses: FloatArray, vehicle: VehicleProfile) -> FloatArray:
+    centre = np.array([[vehicle.length / 2.0, vehicle.width / 2.0, 0.0]])
+    return np.asarray(body_points_to_world(poses, centre, vehicle)[:, 0, :], dtype=np.float64)
+
+
+def _footprint_centres(
+    trajectory: Trajectory, matched: Sequence[MatchedTrack], vehicle: VehicleProfile
+) -> FloatArray:
+    """Footprint centres of the trajectory while any matched track was visible (the road near the camera)."""
+    visible = np.zeros(len(trajectory.stamps), dtype=bool)
+    for track in matched:
+        lo, hi = np.searchsorted(trajectory.stamps, [track.stamps[0], track.stamps[-1]])
+        visible[lo:hi] = True
+    poses = trajectory.poses[visible] if visible.sum() >= 3 else trajectory.poses
+    return _footprint_centres_of(poses, vehicle)
+
+
+def _tracks_of(candidate: Candidate, tracks_by_id: dict[int, MatchedTrack]) -> list[MatchedTrack]:
+    return [tracks_by_id[i] for i in candidate.track_ids]
+
+
+def _summarise_reasons(reasons: dict[int, str] | object) -> tuple[str, ...]:
+    """Count identical reasons (the part before the first ':' or '=') so --verbose stays readable."""
+    if not isinstance(reasons, dict) and not hasattr(reasons, "items"):
+        return ()
+    counts: dict[str, int] = {}
+    for reason in reasons.values():  # type: ignore[attr-defined]
+        key = str(reason).split(":")[0].split("=")[0].strip()
+        counts[key] = counts.get(key, 0) + 1
+    return tuple(f"{n} x {key}" for key, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+
+
+def _refused_result(
+    inputs: CalibrationInputs, origin: LocalOrigin | None, created_at_ns: int, reasons: list[str]
+) -> CalibrationResult:
+    frame = ReferenceFrame(
+        crs=inputs.crs, origin=(origin.x, origin.y, origin.z) if origin else (0.0, 0.0, 0.0)
+    )
+    return CalibrationResult(
+        schema_version=SCHEMA_VERSION,
+        rsu_id=inputs.rsu_id,
+        camera_id=inputs.camera_id,
+        result_id=_result_id(inputs, created_at_ns),
+        created_at_ns=created_at_ns,
+        frame=frame,
+        intrinsics=inputs.intrinsics,
+        verdict=Verdict(status="refused", reasons=reasons),
+        provenance=_provenance(inputs),
+    )
+
+
+def _result(
+    inputs: CalibrationInputs,
+    origin: LocalOrigin,
+    created_at_ns: int,
+    chosen: Candidate,
+    ground: GroundPlaneFit,
+    camera: CameraModel,
+    verdict: Verdict,
+    trajectory: Trajectory,
+) -> CalibrationResult:
+    refined = chosen.whole_box
+    R = refined.R_cam_from_local
+    t = refined.t_cam_from_local
+    centre_local = refined.camera_center
+    centre_utm = centre_local + np.array([origin.x, origin.y, origin.z])
+    utm = UtmFrame(inputs.crs)
+    lat, lon = utm.to_wgs84(np.array([centre_utm[0]]), np.array([centre_utm[1]]))
+    summary = chosen.metrics
+    quality = Quality(
+        delta_p_mean_m=_finite(summary.delta_p_mean_m),
+        delta_p_max_m=_finite(summary.delta_p_max_m),
+        e_mean_pct=_finite(summary.e_mean_pct),
+        e_max_pct=_finite(summary.e_max_pct),
+        reprojection_rmse_px=_finite(refined.box_rmse_px),
+        correspondences=int(refined.used_residuals),
+        tracks=len(chosen.track_ids),
+        traversals=chosen.traversals,
+    )
+    covariance = np.asarray(refined.covariance, dtype=np.float64)
+    finite_cov = np.all(np.isfinite(covariance))
+    uncertainty = (
+        Uncertainty(
+            covariance=tuple(tuple(float(v) for v in row) for row in covariance),
+            position_std_m=_finite(refined.position_std_m),
+            rotation_std_deg=_finite(refined.rotation_std_deg),
+        )
+        if finite_cov
+        else None
+    )
+    return CalibrationResult(
+        schema_version=SCHEMA_VERSION,
+        rsu_id=inputs.rsu_id,
+        camera_id=inputs.camera_id,
+        result_id=_result_id(inputs, created_at_ns),
+        created_at_ns=created_at_ns,
+        frame=ReferenceFrame(crs=inputs.crs, origin=(origin.x, origin.y, origin.z)),
+        R=tuple(tuple(float(v) for v in row) for row in R),
+        t=(float(t[0]), float(t[1]), float(t[2])),
+        camera_position=CameraPosition(
+            utm=(float(centre_utm[0]), float(centre_utm[1]), float(centre_utm[2])),
+            lat=float(lat[0]),
+            lon=float(lon[0]),
+            alt=float(centre_utm[2]),
+        ),
+        orientation_wxyz=tuple(float(v) for v in quaternion_wxyz_from_rotation(R.T)),
+        intrinsics=inputs.intrinsics,
+        ground_plane=GroundPlane(
+            normal=(float(ground.normal[0]), float(ground.normal[1]), float(ground.normal[2])),
+            offset=float(ground.offset),
+        ),
+        uncertainty=uncertainty,
+        quality=quality,
+        verdict=verdict,
+        provenance=_provenance(inputs, trajectory),
+    )
+
+
+def _finite(value: float | None) -> float:
+    """Schema fields are finite: a metric that could not be computed is reported as a huge value, and the
+    gates have already refused such a result."""
+    return float(value) if value is not None and np.isfinite(value) else 1e9
+
+
+def _provenance(inputs: CalibrationInputs, trajectory: Trajectory | None = None) -> Provenance:
+    stamps = [f.stamp_ns for f in inputs.detections]
+    return Provenance(
+        window_start_ns=min(stamps) if stamps else None,
+        window_end_ns=max(stamps) if stamps else None,
+        recordings=list(inputs.recordings),
+        station_id=inputs.station_id,
+        software_version=SOFTWARE_VERSION,
+        config_hash="",
+    )
+
+
+def _result_id(inputs: CalibrationInputs, created_at_ns: int) -> str:
+    digest = hashlib.sha256(f"{inputs.rsu_id}/{inputs.camera_id}/{created_at_ns}".encode()).hexdigest()[:12]
+    return f"{inputs.rsu_id}-{inputs.camera_id}-{created_at_ns}-{digest}"
