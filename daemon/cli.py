@@ -17,6 +17,9 @@ from pydantic import ValidationError
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 
+# Duplicated from daemon.offline (imported lazily, like every command's dependencies) for --help.
+DEFAULT_YAML_CRS = "EPSG:32632"
+
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -68,6 +71,42 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from daemon.offline import (
+        TerminalProgress,
+        format_stage_reports,
+        format_summary,
+        load_offline_inputs,
+        write_result,
+    )
+    from pipeline.calibrate import PipelineParams, calibrate
+
+    loaded = load_offline_inputs(
+        Path(args.camera),
+        Path(args.vehicle),
+        mcap_path=Path(args.mcap) if args.mcap else None,
+        detections_path=Path(args.detections) if args.detections else None,
+        poses_path=Path(args.poses) if args.poses else None,
+        camera_id=args.camera_id,
+        station_id=args.station_id,
+        crs=args.crs,
+        time_offset_ns=args.time_offset_ns,
+    )
+    for note in loaded.notes:
+        print(f"note: {note}")
+    with TerminalProgress() as progress:
+        outcome = calibrate(
+            loaded.inputs, PipelineParams(), np.random.default_rng(args.seed), progress=progress
+        )
+    written = write_result(outcome.result, Path(args.out))
+    if args.verbose:
+        print(format_stage_reports(outcome))
+    print(format_summary(outcome.result, written))
+    return EXIT_OK if outcome.result.verdict.is_accepted else EXIT_REFUSED
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rsucal", description="Automatic roadside camera calibration.")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
@@ -89,6 +128,40 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--ground-truth", required=True, help="ground_truth.json of the same camera")
     ev.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ev.set_defaults(func=_cmd_evaluate)
+
+    cal = sub.add_parser(
+        "calibrate",
+        help="calibrate one camera offline from an MCAP recording or the toolbox YAML pair",
+        description="Calibrate one camera from a recording (--mcap) or the reference toolbox's YAML pair "
+        "(--detections + --poses). Exit 0 accepted, 3 refused (reasons printed), 2 bad input.",
+    )
+    cal.add_argument("--camera", required=True, help="camera.yaml: intrinsics (px) and distortion")
+    cal.add_argument("--vehicle", required=True, help="vehicle.yaml: the calibration vehicle's box and IMU")
+    source = cal.add_mutually_exclusive_group(required=True)
+    source.add_argument("--mcap", help="rsucal MCAP recording: detections and V2X positions")
+    source.add_argument("--detections", help="toolbox detections.yaml (needs --poses)")
+    cal.add_argument("--poses", help="toolbox poses.yaml: absolute UTM of --crs (with --detections)")
+    cal.add_argument(
+        "--camera-id",
+        help="MCAP: which camera (needed if it holds several); YAML: its id (default: camera.yaml's stem)",
+    )
+    cal.add_argument(
+        "--station-id", type=int, help="MCAP: the calibration vehicle's V2X station (needed if several)"
+    )
+    cal.add_argument(
+        "--crs",
+        help=f"UTM EPSG code of the poses/result, e.g. EPSG:32632 (MCAP default: the zone of the first "
+        f"V2X position; YAML default: {DEFAULT_YAML_CRS}, which only the lat/lon output depends on)",
+    )
+    cal.add_argument(
+        "--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns (default 0)"
+    )
+    cal.add_argument("--seed", type=int, default=0, help="RANSAC random seed (default 0)")
+    cal.add_argument(
+        "--verbose", action="store_true", help="print what every stage kept and discarded, and why"
+    )
+    cal.add_argument("--out", required=True, help="CalibrationResult JSON to write (atomically)")
+    cal.set_defaults(func=_cmd_calibrate)
     return parser
 
 

@@ -9,6 +9,7 @@ the central meridian that is decimetres at a car's corners, so it is never skipp
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import cast
 
@@ -81,21 +82,36 @@ class UtmFrame:
 
 def pose_from_v2x(message: V2xPosition, frame: UtmFrame) -> VehiclePose:
     """V2X position (WGS84, true heading) -> VehiclePose in UTM with grid yaw; pitch/roll 0 when absent."""
-    east, north = frame.to_utm(np.array([message.lat]), np.array([message.lon]))
-    yaw = frame.yaw_from_heading(
-        np.array([message.heading_deg]), np.array([message.lat]), np.array([message.lon])
-    )
-    if not (np.isfinite(east[0]) and np.isfinite(north[0])):
+    poses, rejected = poses_from_v2x([message], frame)
+    if rejected:
         raise InputError("v2x", f"lat/lon = {message.lat}, {message.lon} not representable in {frame.crs}")
-    return VehiclePose(
-        stamp_ns=message.stamp_ns,
-        x=float(east[0]),
-        y=float(north[0]),
-        z=message.alt,
-        yaw=float(yaw[0]),
-        pitch=message.pitch or 0.0,
-        roll=message.roll or 0.0,
-    )
+    return poses[0]
+
+
+def poses_from_v2x(messages: Sequence[V2xPosition], frame: UtmFrame) -> tuple[list[VehiclePose], int]:
+    """Many V2X positions -> VehiclePoses in one projection call (per message, pyproj's overhead would
+    dominate loading a long recording). Returns the poses and how many messages had no finite UTM position."""
+    if not messages:
+        return [], 0
+    lat = np.array([m.lat for m in messages])
+    lon = np.array([m.lon for m in messages])
+    east, north = frame.to_utm(lat, lon)
+    yaw = frame.yaw_from_heading(np.array([m.heading_deg for m in messages]), lat, lon)
+    finite = np.isfinite(east) & np.isfinite(north) & np.isfinite(yaw)
+    poses = [
+        VehiclePose(
+            stamp_ns=m.stamp_ns,
+            x=float(x),
+            y=float(y),
+            z=m.alt,
+            yaw=float(w),
+            pitch=m.pitch or 0.0,
+            roll=m.roll or 0.0,
+        )
+        for m, x, y, w, ok in zip(messages, east, north, yaw, finite, strict=True)
+        if ok
+    ]
+    return poses, int((~finite).sum())
 
 
 def v2x_from_pose(

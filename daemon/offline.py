@@ -1,0 +1,365 @@
+"""Offline calibration (`rsucal calibrate`): inputs from files, a progress bar, and readable reports.
+
+Inputs come from an rsucal MCAP recording (one camera's detections, one V2X station's positions converted
+to UTM poses) or from the reference toolbox's YAML pair (detections.yaml + poses.yaml, poses already in
+absolute UTM). Either way the result is the CalibrationInputs that the daemon's jobs also build, so
+`rsucal calibrate` and the service make the same pipeline call. Bad files raise InputError naming the file
+and field; recoverable problems (rejected messages, a damaged chunk) are returned as notes.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import TextIO
+
+import numpy as np
+from pyproj.exceptions import CRSError
+from tqdm import tqdm
+
+from daemon.recording import read_recording
+from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
+from pipeline.errors import InputError
+from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
+from pipeline.loaders import load_intrinsics, load_toolbox_detections, load_toolbox_poses, load_vehicle
+from schemas.common import CameraIntrinsics, VehicleProfile
+from schemas.messages import VehiclePose
+from schemas.results import CalibrationResult
+
+# The toolbox's poses.yaml is UTM without a zone; the reference data (and our simulator's German sites
+# but Dresden) are zone 32N. Only the WGS84 output depends on it: R, t live in the UTM frame itself.
+DEFAULT_YAML_CRS = "EPSG:32632"
+OFFLINE_RSU_ID = "offline"
+DEFAULT_CAMERA_ID = "camera"
+
+_IDENTIFIER = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # schemas.common.Identifier
+_EPSG = re.compile(r"^EPSG:\d{4,5}$")
+_NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
+_COUNTED_NOTE = re.compile(r"^(\d+) x (.*)$")
+# Eastings inside a UTM zone lie within ~167-833 km (widest at the equator), northings within 0-10 000 km.
+# Poses outside are not absolute UTM (typically a local frame), and their WGS84 output would be nonsense.
+_UTM_EAST_RANGE_M = (100_000.0, 900_000.0)
+_UTM_NORTH_RANGE_M = (0.0, 10_000_000.0)
+_MAX_LISTED_CHOICES = 12
+
+
+@dataclass(frozen=True, slots=True)
+class OfflineInputs:
+    """CalibrationInputs plus what was assumed or skipped while reading them (printed as notes)."""
+
+    inputs: CalibrationInputs
+    notes: tuple[str, ...] = ()
+
+
+def load_offline_inputs(
+    camera_path: Path,
+    vehicle_path: Path,
+    *,
+    mcap_path: Path | None = None,
+    detections_path: Path | None = None,
+    poses_path: Path | None = None,
+    camera_id: str | None = None,
+    station_id: int | None = None,
+    crs: str | None = None,
+    time_offset_ns: int = 0,
+) -> OfflineInputs:
+    """Build one camera's CalibrationInputs from an MCAP recording or from the toolbox YAML pair.
+
+    MCAP: the detections of `camera_id` (may be omitted when the file holds one camera) and the V2X
+    positions of `station_id` (may be omitted when there is one station), converted to UTM poses in
+    `crs` (default: the UTM zone of the first position). YAML: detections.yaml + poses.yaml (absolute UTM
+    of `crs`, default DEFAULT_YAML_CRS); the camera id is `camera_id`, else camera.yaml's stem.
+    """
+    if (mcap_path is None) == (detections_path is None and poses_path is None):
+        raise InputError("arguments", "give either --mcap REC.mcap or --detections D.yaml --poses P.yaml")
+    if mcap_path is None and (detections_path is None or poses_path is None):
+        missing = "--poses" if poses_path is None else "--detections"
+        raise InputError(missing, "the YAML pair needs both --detections and --poses")
+    if camera_id is not None and not _IDENTIFIER.match(camera_id):
+        raise InputError("--camera-id", f"{camera_id!r} is not a camera id ([A-Za-z0-9_.-], 1-64 chars)")
+    if crs is not None:
+        crs = _checked_crs(crs, "--crs")
+    intrinsics = load_intrinsics(Path(camera_path))
+    vehicle = load_vehicle(Path(vehicle_path))
+
+    if mcap_path is not None:
+        return _from_mcap(Path(mcap_path), intrinsics, vehicle, camera_id, station_id, crs, time_offset_ns)
+    assert detections_path is not None and poses_path is not None
+    notes: list[str] = []
+    if crs is None:
+        crs = DEFAULT_YAML_CRS
+        notes.append(f"poses are UTM without a zone: assuming {crs} (set --crs for the lat/lon output)")
+    if camera_id is None:
+        stem = Path(camera_path).stem
+        camera_id = stem if _IDENTIFIER.match(stem) else DEFAULT_CAMERA_ID
+    detections = load_toolbox_detections(Path(detections_path), camera_id)
+    poses = load_toolbox_poses(Path(poses_path))
+    _check_absolute_utm(Path(poses_path), poses)
+    inputs = CalibrationInputs(
+        rsu_id=OFFLINE_RSU_ID,
+        camera_id=camera_id,
+        intrinsics=intrinsics,
+        vehicle=vehicle,
+        detections=detections,
+        poses=poses,
+        crs=crs,
+        time_offset_ns=time_offset_ns,
+        station_id=station_id,
+        recordings=(str(detections_path), str(poses_path)),
+    )
+    return OfflineInputs(inputs, tuple(notes))
+
+
+def _from_mcap(
+    path: Path,
+    intrinsics: CameraIntrinsics,
+    vehicle: VehicleProfile,
+    camera_id: str | None,
+    station_id: int | None,
+    crs: str | None,
+    time_offset_ns: int,
+) -> OfflineInputs:
+    # Read every camera and station, then choose: a wrong or missing choice can then list the real ones.
+    recording = read_recording(path)
+    notes = [f"{path}: {problem}" for problem in recording.problems]
+    if not recording.complete:
+        notes.append(f"{path}: not finished by its writer (no footer); read up to its last intact chunk")
+    for topic, count in sorted(recording.rejected.items()):
+        example = recording.rejection_examples.get(topic, "")
+        notes.append(f"{path}: {count} message(s) on {topic} rejected, first: {example}")
+
+    cameras = recording.camera_ids
+    if not cameras:
+        raise InputError(str(path), "detections: the recording holds no rsu/*/camera/*/detections messages")
+    if camera_id is None:
+        if len(cameras) > 1:
+            raise InputError(
+                str(path),
+                f"detections: {len(cameras)} cameras ({_choices(cameras)}); choose one with --camera-id",
+            )
+        camera_id = cameras[0]
+    elif camera_id not in recording.detections:
+        raise InputError(
+            str(path), f"detections: no camera {camera_id!r}; the recording has {_choices(cameras)}"
+        )
+
+    per_station = Counter(message.station_id for message in recording.v2x)
+    if not per_station:
+        raise InputError(
+            str(path), "v2x: the recording holds no v2x/cam/* positions of a calibration vehicle"
+        )
+    listing = _choices([f"{sid} ({n} positions)" for sid, n in sorted(per_station.items())])
+    if station_id is None:
+        if len(per_station) > 1:
+            raise InputError(
+                str(path),
+                f"v2x: {len(per_station)} stations ({listing}); "
+                "name the calibration vehicle with --station-id",
+            )
+        station_id = next(iter(per_station))
+    elif station_id not in per_station:
+        raise InputError(str(path), f"v2x: no positions of station {station_id}; the recording has {listing}")
+    messages = [message for message in recording.v2x if message.station_id == station_id]
+
+    if crs is None:
+        try:
+            crs = utm_epsg_for(messages[0].lat, messages[0].lon)
+        except InputError as err:
+            raise InputError(str(path), f"v2x/cam/{station_id}: {err.detail}") from err
+        notes.append(f"crs {crs}: the UTM zone of the first V2X position (--crs to override)")
+    poses, skipped = poses_from_v2x(messages, UtmFrame(crs))
+    if skipped:
+        notes.append(f"{path}: {skipped} V2X position(s) of station {station_id} not representable in {crs}")
+
+    inputs = CalibrationInputs(
+        rsu_id=recording.rsu_id or OFFLINE_RSU_ID,
+        camera_id=camera_id,
+        intrinsics=intrinsics,
+        vehicle=vehicle,
+        detections=recording.detections[camera_id],
+        poses=poses,
+        crs=crs,
+        time_offset_ns=time_offset_ns,
+        station_id=station_id,
+        recordings=(str(path),),
+    )
+    return OfflineInputs(inputs, tuple(notes))
+
+
+def _checked_crs(crs: str, source: str) -> str:
+    """'epsg:32632' -> 'EPSG:32632', and only UTM zones (the result schema stores exactly this form)."""
+    normalised = crs.strip().upper()
+    if not _EPSG.match(normalised):
+        raise InputError(source, f"{crs!r} is not an EPSG code like EPSG:32632")
+    try:
+        UtmFrame(normalised)
+    except InputError as err:
+        raise InputError(source, err.detail) from err
+    except CRSError as err:
+        raise InputError(source, f"{crs!r} is not a known CRS ({err})") from err
+    return normalised
+
+
+def _check_absolute_utm(path: Path, poses: Sequence[VehiclePose]) -> None:
+    for pose in poses:
+        for name, value, (low, high) in (("x", pose.x, _UTM_EAST_RANGE_M), ("y", pose.y, _UTM_NORTH_RANGE_M)):
+            if not low < value < high:
+                raise InputError(
+                    str(path),
+                    f"{pose.stamp_ns}.{name}: {value} is not a UTM coordinate (expected {low:.0f} < "
+                    f"{name} < {high:.0f} m); toolbox poses are absolute UTM, not a local frame",
+                )
+
+
+def _choices(values: Sequence[str]) -> str:
+    shown = ", ".join(values[:_MAX_LISTED_CHOICES])
+    more = len(values) - _MAX_LISTED_CHOICES
+    return f"{shown}, ... {more} more" if more > 0 else shown
+
+
+# ---------------------------------------------------------------------------------------------- output
+
+
+def write_result(result: CalibrationResult, path: Path) -> Path:
+    """Write the result JSON atomically (tmp + fsync + os.replace): never a half-written file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "w", encoding="utf-8") as stream:
+            stream.write(result.model_dump_json(indent=2) + "\n")
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise InputError(str(path), f"(file): cannot write: {err.strerror or err}") from err
+    return path
+
+
+class TerminalProgress:
+    """A tqdm bar on `stream` driven by calibrate()'s progress callback; silent unless it is a terminal."""
+
+    def __init__(self, stream: TextIO | None = None) -> None:
+        stream = stream if stream is not None else sys.stderr
+        self._bar = tqdm(
+            total=100,
+            file=stream,
+            disable=not stream.isatty(),
+            leave=False,
+            mininterval=0.0,  # calibrate() reports ~10 times per run: draw every stage as it starts
+            bar_format="{desc:<12} {bar} {percentage:3.0f}% {elapsed}",
+        )
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        self._bar.set_description_str(stage, refresh=False)
+        target = min(100, max(0, round(100.0 * fraction)))
+        if target > self._bar.n:
+            self._bar.update(target - self._bar.n)
+        else:
+            self._bar.refresh()
+
+    def close(self) -> None:
+        self._bar.close()
+
+    def __enter__(self) -> TerminalProgress:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def collapse_counted_notes(notes: Sequence[str]) -> tuple[str, ...]:
+    """Merge 'N x reason' notes that differ only in their numbers; differing numbers become a range.
+
+    '1 x camera 42.2 m from the driven path > 40.0 m' and '1 x camera 57.3 m ...' read as
+    '2 x camera 42.2..57.3 m from the driven path > 40.0 m'. Other notes come first, unchanged; merged
+    ones follow, largest count first.
+    """
+    plain: list[str] = []
+    counts: dict[str, int] = {}  # template -> summed count, in order of first appearance
+    columns: dict[str, list[list[str]]] = {}  # template -> the numbers at each of its places
+    for note in notes:
+        match = _COUNTED_NOTE.match(note)
+        if match is None:
+            plain.append(note)
+            continue
+        text = match.group(2).replace("{", "(").replace("}", ")")  # braces would break str.format
+        template = _NUMBER.sub("{}", text)
+        numbers = _NUMBER.findall(text)
+        counts[template] = counts.get(template, 0) + int(match.group(1))
+        places = columns.setdefault(template, [[] for _ in numbers])
+        for place, number in zip(places, numbers, strict=True):
+            place.append(number)
+    merged = [
+        f"{count} x {template.format(*(_number_range(place) for place in columns[template]))}"
+        for template, count in sorted(counts.items(), key=lambda item: -item[1])
+    ]
+    return (*plain, *merged)
+
+
+def _number_range(numbers: Sequence[str]) -> str:
+    """'42.2' when all agree, else 'min..max' with the most decimals any of them had."""
+    if len(set(numbers)) == 1:
+        return numbers[0]
+    values = [float(n) for n in numbers]
+    decimals = max(len(n.partition(".")[2]) for n in numbers)
+    return f"{min(values):.{decimals}f}..{max(values):.{decimals}f}"
+
+
+def format_stage_reports(outcome: CalibrationOutcome) -> str:
+    """What each stage kept and discarded and why, then the candidate groups (for --verbose)."""
+    lines = ["stages:"]
+    for report in outcome.stages:
+        lines.append(f"  {report.stage:<12} kept {report.kept}, discarded {report.discarded}")
+        lines.extend(f"    {note}" for note in collapse_counted_notes(report.notes))
+    if outcome.candidates:
+        origin = np.asarray(outcome.result.frame.origin, dtype=np.float64)
+        lines.append("candidate groups (* chosen):")
+        for candidate in outcome.candidates:
+            mark = "*" if candidate is outcome.chosen else " "
+            centre = candidate.whole_box.camera_center + origin
+            lines.append(
+                f"  {mark} tracks {list(candidate.track_ids)}: {candidate.traversals} traversal(s), "
+                f"box error {100.0 * candidate.box_error_rel:.2f} %, "
+                f"delta_p mean {candidate.delta_p_mean_m:.3f} m, "
+                f"camera at E {centre[0]:.2f} N {centre[1]:.2f} h {centre[2]:.2f} m"
+            )
+    return "\n".join(lines)
+
+
+def format_summary(result: CalibrationResult, written: Path | None = None) -> str:
+    """The short report printed after every run: verdict, camera position, quality, uncertainty."""
+    verdict = result.verdict
+    lines = [f"verdict      {verdict.status} (camera {result.camera_id}, rsu {result.rsu_id})"]
+    lines.extend(f"  reason     {reason}" for reason in verdict.reasons)
+    position = result.camera_position
+    if position is not None:
+        east, north, height = position.utm
+        lines.append(f"position     {result.frame.crs} E {east:.3f} N {north:.3f} h {height:.3f} m")
+        lines.append(f"             lat {position.lat:.7f} lon {position.lon:.7f} alt {position.alt:.3f} m")
+    quality = result.quality
+    if quality is not None:
+        lines.append(f"delta_p      mean {quality.delta_p_mean_m:.3f} m, max {quality.delta_p_max_m:.3f} m")
+        lines.append(f"e            mean {quality.e_mean_pct:.3f} %, max {quality.e_max_pct:.3f} %")
+        lines.append(
+            f"traversals   {quality.traversals} ({quality.tracks} tracks, "
+            f"{quality.correspondences} correspondences, box RMSE {quality.reprojection_rmse_px:.2f} px)"
+        )
+    uncertainty = result.uncertainty
+    if uncertainty is not None:
+        lines.append(
+            f"std          position {uncertainty.position_std_m:.3f} m, "
+            f"rotation {uncertainty.rotation_std_deg:.3f} deg"
+        )
+    if written is not None:
+        lines.append(f"wrote        {written}")
+    return "\n".join(lines)

@@ -1,0 +1,142 @@
+"""The whole pipeline on simulated scenes: accuracy against ground truth, and the refusals.
+
+Each scene is simulated once with a fixed seed, calibrated once with a fixed RANSAC seed, and scored with
+metrics.evaluate_against_ground_truth (paper Sec. IV-B plus camera position/rotation error). Tolerances
+stand beside their reason; the measured values at the time of writing are in the comments.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from pipeline.calibrate import CalibrationInputs, CalibrationOutcome, PipelineParams, calibrate
+from pipeline.metrics import Evaluation, evaluate_against_ground_truth
+from pipeline.simulate import SimulationResult, simulate
+from pipeline.tracking import frames_from_detections, track_boxes
+
+pytestmark = pytest.mark.slow
+
+CALIBRATION_SEED = 0
+
+
+@cache
+def _run(preset: str, seed: int) -> tuple[SimulationResult, CalibrationOutcome, Evaluation]:
+    """Simulate, calibrate the (single) camera and evaluate; cached so each scene runs once per session."""
+    sim = simulate(preset, seed=seed)
+    camera = sim.cameras[0]
+    inputs = CalibrationInputs(
+        rsu_id=sim.rsu_id,
+        camera_id=camera.camera_id,
+        intrinsics=camera.intrinsics,
+        vehicle=sim.vehicle,
+        detections=sim.detections[camera.camera_id],
+        poses=sim.poses,
+        crs=sim.origin.crs,
+        station_id=sim.station_id,
+    )
+    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED))
+    evaluation = evaluate_against_ground_truth(outcome.result, sim.ground_truth[camera.camera_id])
+    return sim, outcome, evaluation
+
+
+def _assert_accepted(outcome: CalibrationOutcome) -> None:
+    verdict = outcome.result.verdict
+    assert verdict.status == "accepted", verdict.reasons
+
+
+def test_carla_like_is_near_exact() -> None:
+    # carla-like: noise-free boxes and poses, no distortion. What is left is the solver's tolerance and
+    # float rounding (measured: below 1e-4 m, 1e-4 deg and 1e-4 m delta_p); the bounds are the issue's and
+    # still catch any systematic error (a wrong convention costs decimetres or degrees).
+    _, outcome, evaluation = _run("carla-like", 0)
+    _assert_accepted(outcome)
+    assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.05
+    assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg < 0.05
+    assert evaluation.delta_p_mean_m is not None and evaluation.delta_p_mean_m < 0.03
+
+
+def test_sil_south_meets_the_papers_accuracy() -> None:
+    # sil-south: 1 px box jitter, 7.5 cm / 0.15 deg pose noise with drift and dropouts, real distortion,
+    # camera ~30 m from the road. The paper reports delta_p,m of a few decimetres and e_m < 1 % on its SIL
+    # data; bounds: delta_p mean < 0.25 m, e_m < 0.8 %, position < 0.3 m (measured 0.12 m, 0.18 %, 0.06 m).
+    _, outcome, evaluation = _run("sil-south", 0)
+    _assert_accepted(outcome)
+    assert evaluation.delta_p_mean_m is not None and evaluation.delta_p_mean_m < 0.25
+    assert evaluation.e_mean_pct is not None and evaluation.e_mean_pct < 0.8
+    assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.3
+    # The reported uncertainty is honest: the true error lies within a few of the reported stds.
+    uncertainty = outcome.result.uncertainty
+    assert uncertainty is not None
+    assert evaluation.position_error_m < 5.0 * uncertainty.position_std_m + 0.05
+
+
+def test_wide_distorted_lens_is_accepted() -> None:
+    # 90+ deg lens with k1 = -0.05 at 800 px focal length: distortion is modelled, so the same noise as the
+    # SIL scenes gives the same accuracy class (measured 0.03 m, 0.02 deg).
+    _, outcome, evaluation = _run("wide-distorted", 0)
+    _assert_accepted(outcome)
+    assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.3
+    assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg < 0.2
+
+
+def test_no_target_is_refused_with_a_reason() -> None:
+    # The calibration vehicle drives elsewhere: only other traffic is in view. Any pose would be a guess.
+    sim, outcome, _ = _run("no-target", 0)
+    assert sim.ground_truth[sim.cameras[0].camera_id].traversals == 0  # the scene is what it claims
+    verdict = outcome.result.verdict
+    assert verdict.status == "refused"
+    assert verdict.reasons and all(reason.strip() for reason in verdict.reasons)
+
+
+def test_single_traversal_is_refused_for_its_traversal_count() -> None:
+    # One drive-past fits a pose that can be rotated about the vehicle's path (DESIGN: gates): refuse.
+    sim, outcome, _ = _run("single-traversal", 0)
+    assert sim.ground_truth[sim.cameras[0].camera_id].traversals == 1
+    verdict = outcome.result.verdict
+    assert verdict.status == "refused"
+    assert any("traversals = 1 < 2" in reason for reason in verdict.reasons), verdict.reasons
+
+
+@pytest.mark.parametrize(("preset", "min_share"), [("carla-like", 1.0), ("sil-south", 0.98)])
+def test_chosen_tracks_are_the_calibration_vehicle(preset: str, min_share: float) -> None:
+    """Map every box of the chosen group's tracks back to the detections and ask the ground truth."""
+    sim, outcome, _ = _run(preset, 0)
+    assert outcome.chosen is not None
+    camera = sim.cameras[0]
+    detections = sim.detections[camera.camera_id]
+    truth = sim.ground_truth[camera.camera_id]
+    # Tracking is deterministic (no rng), so re-running it reproduces calibrate()'s track ids; the
+    # refinement's per-box (track, stamp) list proves that it did.
+    track_set = track_boxes(
+        frames_from_detections(detections), camera.intrinsics.width, camera.intrinsics.height,
+        PipelineParams().tracking,
+    )  # fmt: skip
+    tracks = {track.track_id: track for track in track_set.tracks}
+    refined = outcome.chosen.whole_box
+    for track_id in outcome.chosen.track_ids:
+        used = set(refined.stamps[refined.box_track_ids == track_id].tolist())
+        assert used and used <= set(tracks[track_id].stamps.tolist())
+
+    frames_by_stamp = {frame.stamp_ns: frame for frame in detections}
+    truth_by_stamp = {frame.stamp_ns: frame for frame in truth.frames}
+    traversals: set[int] = set()
+    is_vehicle: list[bool] = []
+    for track_id in outcome.chosen.track_ids:
+        track = tracks[track_id]
+        for stamp, box in zip(track.stamps.tolist(), track.boxes, strict=True):
+            truth_frame = truth_by_stamp[stamp]
+            if truth_frame.calib_box is None:
+                is_vehicle.append(False)
+                continue
+            calib = frames_by_stamp[stamp].boxes[truth_frame.calib_box]
+            is_vehicle.append(bool(np.allclose(box, [calib.x1, calib.y1, calib.x2, calib.y2], atol=1e-9)))
+            if truth_frame.traversal is not None:
+                traversals.add(truth_frame.traversal)
+    # Noise-free carla-like: every box. With a noisy detector a track may swap to a crossing vehicle for a
+    # frame or two before the tracker recovers; the pose must still rest on the calibration vehicle.
+    assert np.mean(is_vehicle) >= min_share, f"{np.mean(is_vehicle):.3f} of {len(is_vehicle)} boxes"
+    assert len(traversals) >= 2
+    assert outcome.result.quality is not None and outcome.result.quality.traversals == len(traversals)
