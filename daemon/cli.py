@@ -81,6 +81,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         load_offline_inputs,
         write_result,
     )
+    from daemon.workers import track_pool
     from pipeline.calibrate import PipelineParams, calibrate
 
     loaded = load_offline_inputs(
@@ -96,9 +97,13 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     )
     for note in loaded.notes:
         print(f"note: {note}")
-    with TerminalProgress() as progress:
+    with track_pool(args.workers) as map_fn, TerminalProgress() as progress:
         outcome = calibrate(
-            loaded.inputs, PipelineParams(), np.random.default_rng(args.seed), progress=progress
+            loaded.inputs,
+            PipelineParams(),
+            np.random.default_rng(args.seed),
+            progress=progress,
+            map_fn=map_fn,
         )
     written = write_result(outcome.result, Path(args.out))
     if args.verbose:
@@ -157,6 +162,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns (default 0)"
     )
     cal.add_argument("--seed", type=int, default=0, help="RANSAC random seed (default 0)")
+    cal.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes for the per-track fits (default: one per core; 1 = no pool); results are identical",
+    )
     cal.add_argument(
         "--verbose", action="store_true", help="print what every stage kept and discarded, and why"
     )

@@ -231,12 +231,21 @@ def _scores_against_all(
     valid = in_front & in_lens
     inside = valid & (u >= 0.0) & (u <= camera.width) & (v >= 0.0) & (v <= camera.height)
 
-    # Distance (px) from each projected position to each box of its own frame: 0 inside the box.
-    boxes = view.frame_boxes[None]  # (1, N, B, 4)
-    du = np.maximum(np.maximum(boxes[..., 0] - u[..., None], u[..., None] - boxes[..., 2]), 0.0)
-    dv = np.maximum(np.maximum(boxes[..., 1] - v[..., None], v[..., None] - boxes[..., 3]), 0.0)
-    distance = np.hypot(du, dv)  # (H, N, B); NaN for padding
-    near: BoolArray = np.any(distance <= margin_px, axis=2) & valid  # NaN compares False
+    # Distance (px) from each projected position to each box of its own frame: 0 inside the box. Only
+    # positions within the margin of their frame's boxes' extent can be near one, so the (M, B) distances
+    # are computed for those alone: under another track's pose most positions land away from every box
+    # (the stage took 0.94 s instead of 0.54 s on dense-traffic with all H x N x B of them).
+    # fmin / fmax skip the NaN padding; a frame without boxes gets a NaN extent, which excludes its row.
+    lower = np.fmin.reduce(view.frame_boxes[..., :2], axis=1) - margin_px  # (N, 2)
+    upper = np.fmax.reduce(view.frame_boxes[..., 2:], axis=1) + margin_px
+    candidate = valid & (u >= lower[:, 0]) & (v >= lower[:, 1]) & (u <= upper[:, 0]) & (v <= upper[:, 1])
+    pose_index, row_index = np.nonzero(candidate)
+    boxes = view.frame_boxes[row_index]  # (M, B, 4), NaN padded
+    u_c, v_c = u[pose_index, row_index, None], v[pose_index, row_index, None]
+    du = np.maximum(np.maximum(boxes[..., 0] - u_c, u_c - boxes[..., 2]), 0.0)
+    dv = np.maximum(np.maximum(boxes[..., 1] - v_c, v_c - boxes[..., 3]), 0.0)
+    near: BoolArray = np.zeros((count, rows), dtype=bool)
+    near[pose_index, row_index] = np.any(np.hypot(du, dv) <= margin_px, axis=1)  # NaN compares False
     return 1.0 - inside.mean(axis=1), near.mean(axis=1)
 
 

@@ -476,6 +476,47 @@ LONG = ScenarioConfig(
     duration_s=900.0,
 )
 
+# A camera turned 90 deg about its optical axis (paper IV-A: real cameras "rotated into a portrait
+# orientation"): its image x axis points down the mast, so the scene lies turned a quarter in the 1200 x
+# 1920 image (the horizon runs down its left side). It looks down the N-S road: two of its three
+# traversals are straight along the view, which an upright-image assumption gets ~85 deg wrong.
+PORTRAIT = replace(
+    SIL_NORTH,
+    name="portrait",
+    cameras=(
+        replace(
+            look_at(
+                "portrait",
+                -13.0,
+                21.0,
+                10.0,
+                (2.0, -15.0),
+                width=1200,
+                height=1920,
+                principal_offset_px=(-3.0, 4.0),
+                dist=REGULAR_DIST,
+            ),
+            roll_deg=90.0,
+        ),
+    ),
+    drive=DriveSpec(routes=("N>S", "W>S", "S>N")),
+)
+# A camera mounted with a visible tilt of its image (8 deg roll): neither upright nor a quarter turn. All
+# three traversals are straight, so no track's pose is fixed by its path alone.
+ROLLED = replace(
+    SIL_NORTH,
+    name="rolled",
+    cameras=(
+        replace(
+            look_at(
+                "rolled", 20.0, -22.0, 9.0, (-6.0, 10.0), principal_offset_px=(2.5, -1.5), dist=REGULAR_DIST
+            ),
+            roll_deg=8.0,
+        ),
+    ),
+    drive=DriveSpec(routes=("W>E", "S>N", "E>W")),
+)
+
 PRESETS: dict[str, ScenarioConfig] = {
     config.name: config
     for config in (
@@ -495,5 +536,7 @@ PRESETS: dict[str, ScenarioConfig] = {
         SINGLE_TRAVERSAL,
         NO_TARGET,
         LONG,
+        PORTRAIT,
+        ROLLED,
     )
 }

@@ -276,6 +276,27 @@ def test_overlap_counts_boxes_of_the_same_frame_within_k_pixels(margin_px: float
     assert result.r_out[0, 0] == 0.0
 
 
+def test_overlap_is_the_distance_to_the_nearest_box_of_the_frame() -> None:
+    # Off a box's corner by 8 px in u and in v the position is 11.3 px away: beyond k = 10, though within
+    # it along each axis. A second box of the same frame 6 px to the left is near. A row whose frame is
+    # not among the frames has no box to overlap.
+    (pixel,), _ = project_points(body_centers(POSE_IN_VIEW[None, :], VEHICLE), R_TRUE, T_TRUE, CAMERA)
+    u, v = pixel
+    off_the_corner = [u + 8.0, v + 8.0, u + 60.0, v + 60.0]
+    to_the_left = [u - 50.0, v - 20.0, u - 6.0, v + 20.0]
+    frames = [
+        FrameBoxes(START_NS, np.array([off_the_corner]), np.array([4])),
+        FrameBoxes(START_NS + FRAME_NS, np.array([off_the_corner, to_the_left]), np.array([4, 4])),
+    ]
+    stamps = START_NS + FRAME_NS * np.arange(3, dtype=np.int64)
+    track = MatchedTrack(1, stamps, np.tile([0.0, 0.0, 10.0, 10.0], (3, 1)), np.tile(POSE_IN_VIEW, (3, 1)))
+    result = group_hypotheses(
+        HypothesisSet((hypothesis(1),), {}), {1: track}, frames, CAMERA, VEHICLE, GroupingParams()
+    )
+    np.testing.assert_allclose(result.r_ov, [[1.0 / 3.0]])
+    np.testing.assert_allclose(result.r_out, [[0.0]])
+
+
 def test_positions_behind_or_beside_the_camera_are_outliers() -> None:
     behind = POSE_IN_VIEW.copy()
     behind[1] = -40.0  # south of a camera looking north
