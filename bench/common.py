@@ -27,21 +27,9 @@ def limit_threads(threads: int = 1) -> None:
 
 def inputs_for(sim: SimulationResult, camera_id: str) -> CalibrationInputs:
     """calibrate() inputs for one camera of a simulation, with the true clock offset as the known one."""
-    from pipeline.calibrate import CalibrationInputs
+    from pipeline.simulate import calibration_inputs
 
-    camera = next(c for c in sim.cameras if c.camera_id == camera_id)
-    truth = sim.ground_truth[camera_id]
-    return CalibrationInputs(
-        rsu_id=sim.rsu_id,
-        camera_id=camera_id,
-        intrinsics=camera.intrinsics,
-        vehicle=sim.vehicle,
-        detections=sim.detections[camera_id],
-        poses=sim.poses,
-        crs=sim.origin.crs,
-        time_offset_ns=truth.clock_offset_ns,
-        station_id=sim.station_id,
-    )
+    return calibration_inputs(sim, camera_id)
 
 
 @dataclass

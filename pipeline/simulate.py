@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +55,10 @@ __all__ = [
 
 # Child generators, in this fixed order (cameras last, one each), so adding a camera changes nothing else.
 _STREAMS = ("clock", "drive", "traffic", "pose", "frames")
+
+
+if TYPE_CHECKING:
+    from pipeline.calibrate import CalibrationInputs
 
 
 @dataclass(frozen=True)
@@ -452,4 +457,27 @@ def _ground_truth(
         clock_offset_ns=config.pose.clock_offset_ns,
         traversals=len(detected),
         frames=frames,
+    )
+
+
+def calibration_inputs(result: SimulationResult, camera_id: str | None = None) -> CalibrationInputs:
+    """calibrate() inputs for one camera of a simulation (default: the first), with the simulated clock
+    offset passed as the known one, exactly as a recording of the same scene would be calibrated."""
+    from pipeline.calibrate import CalibrationInputs
+
+    camera = (
+        result.cameras[0]
+        if camera_id is None
+        else next(c for c in result.cameras if c.camera_id == camera_id)
+    )
+    return CalibrationInputs(
+        rsu_id=result.rsu_id,
+        camera_id=camera.camera_id,
+        intrinsics=camera.intrinsics,
+        vehicle=result.vehicle,
+        detections=result.detections[camera.camera_id],
+        poses=result.poses,
+        crs=result.origin.crs,
+        time_offset_ns=result.ground_truth[camera.camera_id].clock_offset_ns,
+        station_id=result.station_id,
     )

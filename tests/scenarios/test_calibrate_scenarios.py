@@ -12,9 +12,9 @@ from functools import cache
 import numpy as np
 import pytest
 
-from pipeline.calibrate import CalibrationInputs, CalibrationOutcome, PipelineParams, calibrate
+from pipeline.calibrate import CalibrationOutcome, PipelineParams, calibrate
 from pipeline.metrics import Evaluation, evaluate_against_ground_truth
-from pipeline.simulate import SimulationResult, simulate
+from pipeline.simulate import SimulationResult, calibration_inputs, simulate
 from pipeline.tracking import frames_from_detections, track_boxes
 
 pytestmark = pytest.mark.slow
@@ -27,16 +27,7 @@ def _run(preset: str, seed: int) -> tuple[SimulationResult, CalibrationOutcome, 
     """Simulate, calibrate the (single) camera and evaluate; cached so each scene runs once per session."""
     sim = simulate(preset, seed=seed)
     camera = sim.cameras[0]
-    inputs = CalibrationInputs(
-        rsu_id=sim.rsu_id,
-        camera_id=camera.camera_id,
-        intrinsics=camera.intrinsics,
-        vehicle=sim.vehicle,
-        detections=sim.detections[camera.camera_id],
-        poses=sim.poses,
-        crs=sim.origin.crs,
-        station_id=sim.station_id,
-    )
+    inputs = calibration_inputs(sim, camera.camera_id)
     outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED))
     evaluation = evaluate_against_ground_truth(outcome.result, sim.ground_truth[camera.camera_id])
     return sim, outcome, evaluation
@@ -160,15 +151,7 @@ def test_coarse_hypotheses_are_regrouped_after_refinement() -> None:
     sim = simulate("sil-west", seed=9)
     camera = next(c for c in sim.cameras if c.camera_id == "west-junction")
     truth = sim.ground_truth[camera.camera_id]
-    inputs = CalibrationInputs(
-        rsu_id=sim.rsu_id,
-        camera_id=camera.camera_id,
-        intrinsics=camera.intrinsics,
-        vehicle=sim.vehicle,
-        detections=sim.detections[camera.camera_id],
-        poses=sim.poses,
-        crs=sim.origin.crs,
-    )
+    inputs = calibration_inputs(sim, camera.camera_id)
     outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED))
     _assert_accepted(outcome)
     assert any(stage.stage == "regrouping" and stage.kept >= 1 for stage in outcome.stages)

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.calibrate import CalibrationInputs, PipelineParams, calibrate
+from pipeline.calibrate import PipelineParams, calibrate
 from pipeline.metrics import evaluate_against_ground_truth
-from pipeline.simulate import simulate
+from pipeline.simulate import calibration_inputs, simulate
 
 pytestmark = pytest.mark.slow
 
@@ -20,16 +20,7 @@ pytestmark = pytest.mark.slow
 def test_portrait_camera_is_calibrated() -> None:
     sim = simulate("portrait", seed=0)
     (camera,) = sim.cameras
-    inputs = CalibrationInputs(
-        rsu_id=sim.rsu_id,
-        camera_id=camera.camera_id,
-        intrinsics=camera.intrinsics,
-        vehicle=sim.vehicle,
-        detections=sim.detections[camera.camera_id],
-        poses=sim.poses,
-        crs=sim.origin.crs,
-        station_id=sim.station_id,
-    )
+    inputs = calibration_inputs(sim, camera.camera_id)
     outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0))
     assert outcome.result.verdict.status == "accepted", outcome.result.verdict.reasons
     # The accuracy bounds (measured: 0.08 m, 0.08 deg, delta_p 0.035 m). Assumed upright, the
