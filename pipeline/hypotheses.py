@@ -590,12 +590,13 @@ _MAX_SHAPE_ROWS = 40  # rows, evenly spread, that carry the box shape
 _BOX_SHAPE_SCALE = 0.02
 # An edge off by 20 % of the box diagonal or more is a miss, whatever the size of the miss.
 _BOX_EDGE_MAX_COST = 9.0
-# Box fits per track: the scan's best starts, those within this factor of the best scanned misfit (the
-# scan runs along the centres' family, which the box-centre approximation shifts: a start's misfit
-# overstates that of its fit, the truth's several times over in tests).
+# Box fits per track: up to 3 from the first scan's best starts, those within 10x of its best misfit
+# (the scan runs along the centres' family, which the box-centre approximation shifts: a start's misfit
+# overstates that of its fit, the truth's several times over in tests), then up to 2 from the scan about
+# the best fit. Starts within 3 deg of one taken end in the same fit.
 _MAX_BOX_FITS = 3
-_MAX_SECOND_FITS = 2
 _BOX_FIT_CANDIDATE_RATIO = 10.0
+_MAX_SECOND_FITS = 2
 _DISTINCT_START_RAD = math.radians(3.0)
 # From a start 20-60 deg off (the scan's, on a shifted family) a fit can need 15 steps; the refinement
 # downstream does the last digits.
