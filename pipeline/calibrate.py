@@ -17,9 +17,10 @@ two groups that fit about equally well with different poses make the result ambi
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,7 +66,10 @@ from schemas.results import (
     Verdict,
 )
 
-SOFTWARE_VERSION = "0.1.0"
+try:
+    SOFTWARE_VERSION = importlib.metadata.version("rsucal")
+except importlib.metadata.PackageNotFoundError:  # running from a source tree that is not installed
+    SOFTWARE_VERSION = "unknown"
 
 ProgressCallback = Callable[[str, float], None]
 
@@ -186,7 +190,7 @@ def _calibrate(
     created = created_at_ns if created_at_ns is not None else time.time_ns()
 
     def refuse(reason: str, origin: LocalOrigin | None = None) -> CalibrationOutcome:
-        result = _refused_result(inputs, origin, created, [reason])
+        result = _refused_result(inputs, params, origin, created, [reason])
         return CalibrationOutcome(result, tuple(report), (), None)
 
     if not inputs.poses:
@@ -333,11 +337,7 @@ def _calibrate(
         )
         candidates = [extended if c is chosen else c for c in candidates]
         chosen = extended
-    final_ground = fit_ground_plane(
-        np.concatenate(
-            [_footprint_centres_of(m.poses, inputs.vehicle) for m in _tracks_of(chosen, tracks_by_id)]
-        )
-    )
+    final_ground = _ground_under([tracks_by_id[i] for i in chosen.track_ids], inputs.vehicle)
     refined = chosen.whole_box
     camera_height = float(final_ground.height_of(refined.camera_center[None, :])[0])
     evidence = ValidationEvidence(
@@ -352,7 +352,7 @@ def _calibrate(
         extra_reasons=(ambiguity,) if ambiguity else (),
     )
     verdict = validate(evidence, params.gates)
-    result = _result(inputs, origin, created, chosen, final_ground, verdict, params.std_inflation)
+    result = _result(inputs, params, origin, created, chosen, final_ground, verdict)
     report.append(
         StageReport(
             "validation",
@@ -375,7 +375,7 @@ def _refine_group(
 ) -> Candidate:
     """Paper III-F: refine each hypothesis on its own track, merge, refine again; keep the merge only if no
     single hypothesis beats it on the merged tracks. Then our whole-box refinement from the winner."""
-    ground = fit_ground_plane(np.concatenate([_footprint_centres_of(m.poses, vehicle) for m in members]))
+    ground = _ground_under(members, vehicle)
     refinement = params.refinement
     singles = [
         refine_bottom_edge(h.R_cam_from_local, h.t_cam_from_local, [m], camera, vehicle, ground, refinement)
@@ -560,7 +560,7 @@ def _extend(
     if not added:
         return chosen
     union = sorted([*members, *added], key=lambda m: int(m.stamps[0]))
-    ground = fit_ground_plane(np.concatenate([_footprint_centres_of(m.poses, vehicle) for m in union]))
+    ground = _ground_under(union, vehicle)
     try:
         candidate = _finish_candidate(union, R, t, chosen.paper, ground, trajectory, camera, vehicle, params)
     except DegenerateGeometry:
@@ -752,23 +752,26 @@ def _footprint_centres(
     return _footprint_centres_of(poses, vehicle)
 
 
-def _tracks_of(candidate: Candidate, tracks_by_id: dict[int, MatchedTrack]) -> list[MatchedTrack]:
-    return [tracks_by_id[i] for i in candidate.track_ids]
+def _ground_under(tracks: Sequence[MatchedTrack], vehicle: VehicleProfile) -> GroundPlaneFit:
+    """PCA ground plane (paper III-F) of the vehicle's footprint centres while these tracks saw it."""
+    return fit_ground_plane(np.concatenate([_footprint_centres_of(m.poses, vehicle) for m in tracks]))
 
 
-def _summarise_reasons(reasons: dict[int, str] | object) -> tuple[str, ...]:
+def _summarise_reasons(reasons: Mapping[int, str]) -> tuple[str, ...]:
     """Count identical reasons (the part before the first ':' or '=') so --verbose stays readable."""
-    if not isinstance(reasons, dict) and not hasattr(reasons, "items"):
-        return ()
     counts: dict[str, int] = {}
-    for reason in reasons.values():  # type: ignore[attr-defined]
+    for reason in reasons.values():
         key = str(reason).split(":")[0].split("=")[0].strip()
         counts[key] = counts.get(key, 0) + 1
     return tuple(f"{n} x {key}" for key, n in sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
 def _refused_result(
-    inputs: CalibrationInputs, origin: LocalOrigin | None, created_at_ns: int, reasons: list[str]
+    inputs: CalibrationInputs,
+    params: PipelineParams,
+    origin: LocalOrigin | None,
+    created_at_ns: int,
+    reasons: list[str],
 ) -> CalibrationResult:
     frame = ReferenceFrame(
         crs=inputs.crs, origin=(origin.x, origin.y, origin.z) if origin else (0.0, 0.0, 0.0)
@@ -782,18 +785,18 @@ def _refused_result(
         frame=frame,
         intrinsics=inputs.intrinsics,
         verdict=Verdict(status="refused", reasons=reasons),
-        provenance=_provenance(inputs),
+        provenance=_provenance(inputs, params),
     )
 
 
 def _result(
     inputs: CalibrationInputs,
+    params: PipelineParams,
     origin: LocalOrigin,
     created_at_ns: int,
     chosen: Candidate,
     ground: GroundPlaneFit,
     verdict: Verdict,
-    std_inflation: float,
 ) -> CalibrationResult:
     refined = chosen.whole_box
     R = refined.R_cam_from_local
@@ -813,6 +816,7 @@ def _result(
         tracks=len(chosen.track_ids),
         traversals=chosen.traversals,
     )
+    std_inflation = params.std_inflation
     covariance = np.asarray(refined.covariance, dtype=np.float64) * std_inflation**2
     finite_cov = np.all(np.isfinite(covariance))
     uncertainty = (
@@ -848,7 +852,7 @@ def _result(
         uncertainty=uncertainty,
         quality=quality,
         verdict=verdict,
-        provenance=_provenance(inputs),
+        provenance=_provenance(inputs, params),
     )
 
 
@@ -858,7 +862,7 @@ def _finite(value: float | None) -> float:
     return float(value) if value is not None and np.isfinite(value) else 1e9
 
 
-def _provenance(inputs: CalibrationInputs) -> Provenance:
+def _provenance(inputs: CalibrationInputs, params: PipelineParams) -> Provenance:
     stamps = [f.stamp_ns for f in inputs.detections]
     return Provenance(
         window_start_ns=min(stamps) if stamps else None,
@@ -866,7 +870,8 @@ def _provenance(inputs: CalibrationInputs) -> Provenance:
         recordings=list(inputs.recordings),
         station_id=inputs.station_id,
         software_version=SOFTWARE_VERSION,
-        config_hash="",
+        # Every parameter of every stage (frozen dataclasses: repr is complete and stable).
+        config_hash=hashlib.sha256(repr(params).encode()).hexdigest()[:16],
     )
 
 
