@@ -1,6 +1,7 @@
 """Pydantic models of every message, file and result of rsucal (DESIGN.md); imports nothing of ours."""
 
 from schemas.common import Box, CameraIntrinsics, LocalOrigin, VehicleProfile
+from schemas.config import DaemonConfig
 from schemas.files import GroundTruth, GroundTruthFrame
 from schemas.messages import DetectionFrame, V2xAccuracies, V2xPosition, VehiclePose
 from schemas.results import (
@@ -8,7 +9,9 @@ from schemas.results import (
     CalibrationStatus,
     CameraPosition,
     ChangeInfo,
+    DiskUsage,
     GroundPlane,
+    Health,
     JobSummary,
     Provenance,
     Quality,
@@ -24,10 +27,13 @@ __all__ = [
     "CameraIntrinsics",
     "CameraPosition",
     "ChangeInfo",
+    "DaemonConfig",
     "DetectionFrame",
+    "DiskUsage",
     "GroundPlane",
     "GroundTruth",
     "GroundTruthFrame",
+    "Health",
     "JobSummary",
     "LocalOrigin",
     "Provenance",

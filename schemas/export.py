@@ -15,9 +15,10 @@ from pathlib import Path
 from pydantic import BaseModel
 
 from schemas.common import Box, CameraIntrinsics, LocalOrigin, VehicleProfile
+from schemas.config import DaemonConfig
 from schemas.files import GroundTruth
 from schemas.messages import DetectionFrame, V2xPosition, VehiclePose
-from schemas.results import CalibrationResult, CalibrationStatus
+from schemas.results import CalibrationResult, CalibrationStatus, Health
 
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 DEFAULT_OUT_DIR = Path(__file__).resolve().parent / "json"
@@ -27,8 +28,10 @@ EXPORTED_MODELS: tuple[type[BaseModel], ...] = (
     CalibrationResult,
     CalibrationStatus,
     CameraIntrinsics,
+    DaemonConfig,
     DetectionFrame,
     GroundTruth,
+    Health,
     LocalOrigin,
     V2xPosition,
     VehiclePose,

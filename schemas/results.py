@@ -156,3 +156,27 @@ class CalibrationStatus(StrictModel):
     verified_at_ns: StampNs | None = None
     counters: dict[str, int] = Field(default_factory=dict)
     updated_at_ns: StampNs
+
+
+class DiskUsage(StrictModel):
+    """Storage of one RSU: free space where the state lives, and what the recordings take."""
+
+    state_dir: str
+    free_bytes: int = Field(ge=0)
+    recordings_bytes: int = Field(ge=0)
+    recordings_files: int = Field(ge=0)
+
+
+class Health(StrictModel):
+    """What `rsu/{rsu}/health` answers: liveness details, counters, disk and versions."""
+
+    rsu_id: Identifier
+    started_at_ns: StampNs
+    updated_at_ns: StampNs
+    uptime_s: float = Field(ge=0.0, allow_inf_nan=False)
+    cameras: list[str] = Field(default_factory=list)
+    counters: dict[str, int] = Field(default_factory=dict)
+    inbox_depth: int = Field(default=0, ge=0)
+    jobs_running: int = Field(default=0, ge=0)
+    disk: DiskUsage | None = None
+    versions: dict[str, str] = Field(default_factory=dict)

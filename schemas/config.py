@@ -1,0 +1,248 @@
+"""The daemon's configuration (`rsucal daemon --config rsu.yaml`): one validated, frozen model per section.
+
+Every field has a default that works on one machine with nothing else installed, except what only the site
+knows: rsu_id, the cameras and the calibration vehicles. deploy/rsu.example.yaml documents each field.
+Durations are seconds (`_s`), sizes bytes (`_bytes`); names follow DESIGN.md.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from schemas.common import CameraIntrinsics, Identifier, StrictModel, VehicleProfile
+
+GIB = 1024**3
+MIB = 1024**2
+
+
+class ZenohConfig(StrictModel):
+    """The daemon's Zenoh session (DESIGN.md: peer on loopback, multicast scouting off)."""
+
+    mode: Literal["peer", "client"] = Field(
+        default="peer", description="peer: standalone or mesh; client: through a Zenoh router"
+    )
+    listen: list[str] = Field(
+        default_factory=lambda: ["tcp/127.0.0.1:7447"],
+        max_length=16,
+        description="endpoints to listen on (peer mode), e.g. tcp/127.0.0.1:7447",
+    )
+    connect: list[str] = Field(
+        default_factory=list, max_length=16, description="endpoints to connect to, e.g. a router's"
+    )
+    multicast_scouting: bool = Field(default=False, description="discover peers by UDP multicast")
+    config_file: Path | None = Field(
+        default=None,
+        description="a Zenoh JSON5 config (TLS, access control) as the base; the fields above override it",
+    )
+
+    @model_validator(mode="after")
+    def _endpoints(self) -> ZenohConfig:
+        for name, endpoints in (("listen", self.listen), ("connect", self.connect)):
+            for index, endpoint in enumerate(endpoints):
+                if "/" not in endpoint or endpoint.startswith("/") or len(endpoint) > 256:
+                    raise ValueError(
+                        f"{name}.{index} = {endpoint!r} is not a Zenoh endpoint like tcp/host:port"
+                    )
+        if self.mode == "client" and not self.connect and self.config_file is None:
+            raise ValueError("mode client needs connect endpoints (a router) or a config_file")
+        return self
+
+
+class GeoPoint(StrictModel):
+    """A WGS84 point: latitude, longitude (deg) and optional ellipsoidal height (m)."""
+
+    lat: float = Field(ge=-90.0, le=90.0, allow_inf_nan=False)
+    lon: float = Field(ge=-180.0, le=180.0, allow_inf_nan=False)
+    alt: float | None = Field(default=None, ge=-500.0, le=9000.0, allow_inf_nan=False)
+
+
+class CameraConfig(StrictModel):
+    """One camera of the RSU. Coverage (where the calibration vehicle is in view) is a polygon, or a circle
+    around the approximate position; without either it is learned from the first accepted calibration."""
+
+    camera_id: Identifier
+    intrinsics: CameraIntrinsics
+    position: GeoPoint | None = Field(default=None, description="approximate camera position")
+    coverage_radius_m: float | None = Field(
+        default=None, gt=0.0, le=2000.0, allow_inf_nan=False, description="circle around `position`, m"
+    )
+    coverage_polygon: list[GeoPoint] | None = Field(
+        default=None, min_length=3, max_length=256, description="area of the road in view (WGS84 vertices)"
+    )
+
+    @model_validator(mode="after")
+    def _coverage(self) -> CameraConfig:
+        if self.coverage_radius_m is not None and self.position is None:
+            raise ValueError("coverage_radius_m needs position (the circle's centre)")
+        return self
+
+
+class CalibrationVehicle(StrictModel):
+    """A vehicle whose V2X positions are trusted for calibration: its station id and body."""
+
+    station_id: int = Field(ge=0, le=4_294_967_295)
+    profile: VehicleProfile
+    time_offset_ns: int = Field(
+        default=0,
+        ge=-10_000_000_000,
+        le=10_000_000_000,
+        description="vehicle clock minus camera clock, ns, when known",
+    )
+
+
+class TriggerConfig(StrictModel):
+    """When a calibration job starts: enough traversals, then a quiet period after the vehicle left."""
+
+    min_traversals: int = Field(default=3, ge=2, le=100, description="drive-pasts per job (never below 2)")
+    quiet_period_s: float = Field(
+        default=60.0, ge=0.0, le=86_400.0, allow_inf_nan=False, description="wait after the vehicle left"
+    )
+    max_window_s: float = Field(
+        default=3600.0, gt=0.0, le=30 * 86_400.0, allow_inf_nan=False, description="oldest traversal used"
+    )
+    min_dwell_s: float = Field(
+        default=1.0, ge=0.0, le=600.0, allow_inf_nan=False, description="shorter visits are not traversals"
+    )
+    exit_grace_s: float = Field(
+        default=3.0,
+        gt=0.0,
+        le=600.0,
+        allow_inf_nan=False,
+        description="outside coverage (or silent) this long = the vehicle left",
+    )
+    learn_window_s: float = Field(
+        default=1800.0,
+        gt=0.0,
+        le=30 * 86_400.0,
+        allow_inf_nan=False,
+        description="without coverage: run a job on this much data (then the quiet period) to learn it",
+    )
+
+
+class StorageConfig(StrictModel):
+    """State and MCAP recordings: rotation and retention."""
+
+    state_dir: Path = Field(default=Path("/var/lib/rsucal"), description="results, state, recordings")
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    chunk_bytes: int = Field(default=1 * MIB, ge=4096, le=64 * MIB, description="MCAP chunk size")
+    flush_interval_s: float = Field(
+        default=1.0, gt=0.0, le=60.0, allow_inf_nan=False, description="a crash loses at most this much"
+    )
+    rotate_bytes: int = Field(default=256 * MIB, ge=1 * MIB, le=64 * GIB, description="new file after this")
+    rotate_s: float = Field(default=3600.0, ge=1.0, le=7 * 86_400.0, allow_inf_nan=False)
+    retention_bytes: int = Field(
+        default=20 * GIB, ge=16 * MIB, le=2**50, description="recordings kept, total"
+    )
+    retention_s: float = Field(default=7 * 86_400.0, ge=60.0, le=3650 * 86_400.0, allow_inf_nan=False)
+
+
+class IngestConfig(StrictModel):
+    """Limits on incoming messages; anything beyond is rejected, counted and warned about (rate-limited)."""
+
+    max_payload_bytes: int = Field(default=1 * MIB, ge=1024, le=64 * MIB)
+    queue_size: int = Field(default=200_000, ge=100, le=10_000_000, description="inbox; overflow is counted")
+    warn_interval_s: float = Field(default=10.0, gt=0.0, le=3600.0, allow_inf_nan=False)
+    max_clock_skew_s: float | None = Field(
+        default=None,
+        gt=0.0,
+        allow_inf_nan=False,
+        description="reject stamps this far from our clock (None: off, e.g. for replays)",
+    )
+    max_speed_mps: float = Field(default=70.0, gt=0.0, le=200.0, allow_inf_nan=False)
+    max_accel_mps2: float = Field(default=15.0, gt=0.0, le=100.0, allow_inf_nan=False)
+    max_yaw_rate_deg_s: float = Field(default=120.0, gt=0.0, le=2000.0, allow_inf_nan=False)
+    max_position_error_m: float = Field(
+        default=1.0,
+        gt=0.0,
+        le=10.0,
+        allow_inf_nan=False,
+        description="jump-check margin (GNSS noise)",
+    )
+
+
+class GatesConfig(StrictModel):
+    """Validation gates before anything is published (DESIGN.md defaults)."""
+
+    min_traversals: int = Field(default=2, ge=2, le=100)
+    max_delta_p_mean_m: float = Field(default=0.5, gt=0.0, le=10.0, allow_inf_nan=False)
+    min_camera_height_m: float = Field(default=2.0, ge=0.0, le=1000.0, allow_inf_nan=False)
+    max_camera_height_m: float = Field(default=60.0, gt=0.0, le=1000.0, allow_inf_nan=False)
+    max_position_std_m: float = Field(default=0.5, gt=0.0, le=100.0, allow_inf_nan=False)
+    max_rotation_std_deg: float = Field(default=0.5, gt=0.0, le=90.0, allow_inf_nan=False)
+    std_sigmas: float = Field(default=3.0, gt=0.0, le=10.0, allow_inf_nan=False)
+    min_correspondences: int = Field(default=30, ge=4, le=1_000_000)
+    max_box_error_pct: float = Field(default=25.0, gt=0.0, le=100.0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _heights(self) -> GatesConfig:
+        if self.min_camera_height_m >= self.max_camera_height_m:
+            raise ValueError("min_camera_height_m must be below max_camera_height_m")
+        return self
+
+
+class ChangeConfig(StrictModel):
+    """A new result farther than this from the current one means the camera moved."""
+
+    shift_m: float = Field(default=0.3, gt=0.0, le=100.0, allow_inf_nan=False)
+    shift_deg: float = Field(default=0.5, gt=0.0, le=180.0, allow_inf_nan=False)
+
+
+class JobsConfig(StrictModel):
+    """Calibration jobs: separate processes, so the bus loop never waits."""
+
+    max_parallel: int = Field(default=1, ge=1, le=16, description="jobs running at once (cameras queue)")
+    track_workers: int = Field(default=2, ge=1, le=64, description="processes per job for the track fits")
+    timeout_s: float = Field(default=900.0, gt=0.0, le=86_400.0, allow_inf_nan=False)
+    seed: int = Field(default=0, ge=0, le=2**32 - 1, description="RANSAC seed: jobs are reproducible")
+
+
+class DaemonConfig(StrictModel):
+    """Everything `rsucal daemon` needs; validated once at start, then passed down explicitly."""
+
+    rsu_id: Identifier
+    crs: str | None = Field(
+        default=None,
+        pattern=r"^EPSG:\d{4,5}$",
+        description="UTM zone of results; default from the first camera position or V2X message",
+    )
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
+    cameras: list[CameraConfig] = Field(min_length=1, max_length=64)
+    vehicles: list[CalibrationVehicle] = Field(min_length=1, max_length=256)
+    trigger: TriggerConfig = Field(default_factory=TriggerConfig)
+    storage: StorageConfig = Field(default_factory=StorageConfig)
+    ingest: IngestConfig = Field(default_factory=IngestConfig)
+    gates: GatesConfig = Field(default_factory=GatesConfig)
+    change: ChangeConfig = Field(default_factory=ChangeConfig)
+    jobs: JobsConfig = Field(default_factory=JobsConfig)
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+    @model_validator(mode="after")
+    def _unique_and_consistent(self) -> DaemonConfig:
+        camera_ids = [camera.camera_id for camera in self.cameras]
+        if len(set(camera_ids)) != len(camera_ids):
+            raise ValueError(f"cameras: camera_id values must be unique, got {camera_ids}")
+        station_ids = [vehicle.station_id for vehicle in self.vehicles]
+        if len(set(station_ids)) != len(station_ids):
+            raise ValueError(f"vehicles: station_id values must be unique, got {station_ids}")
+        if self.gates.min_traversals > self.trigger.min_traversals:
+            raise ValueError("gates.min_traversals must not exceed trigger.min_traversals")
+        if self.storage.retention_s < self.trigger.max_window_s:
+            raise ValueError("storage.retention_s must cover trigger.max_window_s (jobs read that window)")
+        return self
+
+    def camera(self, camera_id: str) -> CameraConfig:
+        """The camera with this id; KeyError names it when unknown."""
+        for camera in self.cameras:
+            if camera.camera_id == camera_id:
+                return camera
+        raise KeyError(f"camera_id {camera_id!r} is not configured")
+
+    def vehicle(self, station_id: int) -> CalibrationVehicle | None:
+        """The calibration vehicle with this station id, or None for any other station."""
+        for vehicle in self.vehicles:
+            if vehicle.station_id == station_id:
+                return vehicle
+        return None
