@@ -54,6 +54,11 @@ class UtmFrame:
         east, north = self._to_utm.transform(np.asarray(lon_deg, float), np.asarray(lat_deg, float))
         return np.asarray(east, dtype=np.float64), np.asarray(north, dtype=np.float64)
 
+    def to_utm_point(self, lat_deg: float, lon_deg: float) -> tuple[float, float]:
+        """One latitude/longitude (deg) -> (easting, northing) m; ~2 us, for per-message use on the bus."""
+        east, north = self._to_utm.transform(lon_deg, lat_deg)
+        return float(east), float(north)
+
     def to_wgs84(self, east: FloatArray, north: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Easting/northing (m) -> latitude/longitude (deg)."""
         lon, lat = self._to_wgs84.transform(np.asarray(east, float), np.asarray(north, float))
