@@ -1,0 +1,272 @@
+"""The daemon's persistent state per camera: published result, every job's result, and its bookkeeping.
+
+Layout under `state_dir`: cameras/{camera_id}/current.json (latest ACCEPTED result that was published),
+cameras/{camera_id}/history/{created_at_ns:019d}-{result_id}.json (every finished job's result, accepted or
+refused) and cameras/{camera_id}/camera_state.json (CameraState). Every write is atomic and durable: a
+temporary file beside the target, fsync, os.replace, fsync of the directory. Reading is forgiving: a
+damaged current.json is reported and replaced by the best history entry, never fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import threading
+from pathlib import Path
+
+from pydantic import Field, ValidationError
+
+from schemas.common import StampNs, StrictModel, decode_json, describe_validation_error
+from schemas.results import CalibrationResult, JobSummary
+
+log = logging.getLogger(__name__)
+
+CURRENT_FILE = "current.json"
+CAMERA_STATE_FILE = "camera_state.json"
+HISTORY_DIR = "history"
+_IDENTIFIER = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # schemas.common.Identifier
+_UNSAFE_IN_NAME = re.compile(r"[^A-Za-z0-9_.\-]")
+_STAMP_DIGITS = 19  # history names start with created_at_ns:019d, so name order is time order
+
+
+class CameraState(StrictModel):
+    """What the daemon remembers about a camera across restarts, besides its results."""
+
+    last_job: JobSummary | None = None
+    verified_at_ns: StampNs | None = Field(default=None, description="last time a result was confirmed")
+    used_until_ns: StampNs | None = Field(
+        default=None, description="traversals up to this producer stamp were used by a job"
+    )
+    current_result_id: str | None = None
+    last_reasons: list[str] = Field(default_factory=list)
+
+
+class StateStore:
+    """Atomic persistence of results and camera state under one state directory (one daemon per directory).
+
+    Thread-safe: writes are serialised by a lock (results arrive on the supervisor thread, state may be
+    saved elsewhere).
+    """
+
+    def __init__(self, state_dir: Path) -> None:
+        self.state_dir = Path(state_dir)
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------------------------------ paths
+
+    def camera_dir(self, camera_id: str) -> Path:
+        """cameras/{camera_id}; the id must be an Identifier, so it can never escape the state directory."""
+        if not _IDENTIFIER.match(camera_id) or camera_id in (".", ".."):
+            raise ValueError(f"camera_id {camera_id!r} is not an identifier ([A-Za-z0-9_.-], 1-64 chars)")
+        return self.state_dir / "cameras" / camera_id
+
+    def current_path(self, camera_id: str) -> Path:
+        return self.camera_dir(camera_id) / CURRENT_FILE
+
+    def history_dir(self, camera_id: str) -> Path:
+        return self.camera_dir(camera_id) / HISTORY_DIR
+
+    def history_path(self, result: CalibrationResult) -> Path:
+        """history/{created_at_ns:019d}-{result_id}.json (characters unsafe in a file name become '_')."""
+        safe_id = _UNSAFE_IN_NAME.sub("_", result.result_id)
+        return self.history_dir(result.camera_id) / f"{result.created_at_ns:0{_STAMP_DIGITS}d}-{safe_id}.json"
+
+    def history(self, camera_id: str) -> list[Path]:
+        """History entries of a camera, oldest first."""
+        directory = self.history_dir(camera_id)
+        if not directory.is_dir():
+            return []
+        return sorted(p for p in directory.glob("*.json") if not p.name.startswith("."))
+
+    # ------------------------------------------------------------------------------------------ results
+
+    def save_result(self, result: CalibrationResult, current: bool) -> Path:
+        """Add `result` to the history and, if `current`, make it current.json; returns the history file.
+
+        Only accepted results may become current (ValueError otherwise). The history entry is written
+        first: a crash in between leaves the previous current.json, never a current result missing from
+        the history.
+        """
+        if current and not result.verdict.is_accepted:
+            raise ValueError(
+                f"result {result.result_id}: only accepted results become current "
+                f"(verdict {result.verdict.status})"
+            )
+        data = (result.model_dump_json(indent=2) + "\n").encode("utf-8")
+        path = self.history_path(result)
+        with self._lock:
+            _write_atomic(path, data, self.state_dir)
+            if current:
+                _write_atomic(self.current_path(result.camera_id), data, self.state_dir)
+        return path
+
+    def load_current(self, camera_id: str) -> CalibrationResult | None:
+        """The camera's current (published, accepted) result, or None when it has none.
+
+        A truncated or otherwise invalid current.json is logged (naming the file) and replaced by the history
+        entry that camera_state.json names as current, else by the newest accepted history entry.
+        """
+        path = self.current_path(camera_id)
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as err:
+            log.warning("%s: cannot read (%s); falling back to the history", path, err.strerror or err)
+            return self._current_from_history(camera_id)
+        checked = _decode_result(raw, camera_id)
+        if isinstance(checked, CalibrationResult) and not checked.verdict.is_accepted:
+            checked = f"verdict: {checked.verdict.status}; only accepted results are current"
+        if isinstance(checked, CalibrationResult):
+            return checked
+        log.warning("%s: unusable (%s); falling back to the history", path, checked)
+        return self._current_from_history(camera_id)
+
+    def _current_from_history(self, camera_id: str) -> CalibrationResult | None:
+        state = self.load_camera_state(camera_id)
+        wanted = state.current_result_id if state is not None else None
+        newest_accepted: CalibrationResult | None = None
+        for entry in reversed(self.history(camera_id)):
+            try:
+                checked = _decode_result(entry.read_bytes(), camera_id)
+            except OSError as err:
+                log.warning("%s: cannot read (%s); skipped", entry, err.strerror or err)
+                continue
+            if not isinstance(checked, CalibrationResult):
+                log.warning("%s: unusable (%s); skipped", entry, checked)
+                continue
+            if not checked.verdict.is_accepted:
+                continue
+            if wanted is None or checked.result_id == wanted:
+                log.warning("camera %s: using %s as the current result", camera_id, entry)
+                return checked
+            if newest_accepted is None:
+                newest_accepted = checked
+        if newest_accepted is not None:
+            log.warning(
+                "camera %s: history holds no result %s; using the newest accepted, %s",
+                camera_id,
+                wanted,
+                newest_accepted.result_id,
+            )
+        else:
+            log.warning(
+                "camera %s: no accepted result in the history; the camera has no current result", camera_id
+            )
+        return newest_accepted
+
+    def prune_history(self, camera_id: str, keep: int = 1000) -> list[Path]:
+        """Delete all but the newest `keep` history entries, never the current result's; returns the deleted.
+
+        Also removes temporary files a crash left in the history directory.
+        """
+        if keep < 0:
+            raise ValueError(f"keep = {keep} must not be negative")
+        directory = self.history_dir(camera_id)
+        if not directory.is_dir():
+            return []
+        state = self.load_camera_state(camera_id)
+        protected = state.current_result_id if state is not None else None
+        removed: list[Path] = []
+        with self._lock:
+            entries = self.history(camera_id)
+            for entry in entries[: max(0, len(entries) - keep)]:
+                if protected is not None and _result_id_of(entry) == _UNSAFE_IN_NAME.sub("_", protected):
+                    continue
+                entry.unlink(missing_ok=True)
+                removed.append(entry)
+            removed.extend(_remove_stale_tmp(directory))
+            if removed:
+                _fsync_dir(directory)
+        return removed
+
+    # ------------------------------------------------------------------------------------------ camera state
+
+    def save_camera_state(self, camera_id: str, state: CameraState) -> None:
+        """camera_state.json, atomically."""
+        data = (state.model_dump_json(indent=2) + "\n").encode("utf-8")
+        with self._lock:
+            _write_atomic(self.camera_dir(camera_id) / CAMERA_STATE_FILE, data, self.state_dir)
+
+    def load_camera_state(self, camera_id: str) -> CameraState | None:
+        """The saved CameraState; None when never saved, or unreadable (logged, naming the file)."""
+        path = self.camera_dir(camera_id) / CAMERA_STATE_FILE
+        try:
+            return decode_json(CameraState, path.read_bytes())
+        except FileNotFoundError:
+            return None
+        except OSError as err:
+            log.warning("%s: cannot read (%s); starting without it", path, err.strerror or err)
+        except ValidationError as err:
+            log.warning("%s: unusable (%s); starting without it", path, describe_validation_error(err))
+        return None
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def _decode_result(raw: bytes, camera_id: str) -> CalibrationResult | str:
+    """This camera's result in `raw`, or why it is not one (a string naming the field)."""
+    try:
+        result = decode_json(CalibrationResult, raw)
+    except ValidationError as err:
+        return describe_validation_error(err)
+    if result.camera_id != camera_id:
+        return f"camera_id: {result.camera_id!r} is not {camera_id!r}"
+    return result
+
+
+def _result_id_of(entry: Path) -> str:
+    """The (file-name safe) result id of a history entry {created_at_ns:019d}-{result_id}.json."""
+    return entry.name[_STAMP_DIGITS + 1 : -len(".json")]
+
+
+def _write_atomic(path: Path, data: bytes, root: Path) -> None:
+    """Replace `path` by `data` so that a crash at any point leaves either the old or the new file whole."""
+    _make_dirs(path.parent, root)
+    # One fixed temporary name per target: a crash leaves at most one stale file, overwritten next time.
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view) :]
+            os.fsync(fd)  # the data is on disk before the name points at it
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)  # ... and the new name itself survives a power loss
+
+
+def _make_dirs(directory: Path, root: Path) -> None:
+    """mkdir -p, fsyncing each new directory's parent so the new entries are durable too."""
+    missing: list[Path] = []
+    current = directory
+    while not current.exists():
+        missing.append(current)
+        if current == root or current.parent == current:
+            break
+        current = current.parent
+    for new in reversed(missing):
+        new.mkdir(parents=new == root, exist_ok=True)
+        _fsync_dir(new.parent)
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _remove_stale_tmp(directory: Path) -> list[Path]:
+    stale = [p for p in directory.glob(".*.tmp") if p.is_file()]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale

@@ -1,0 +1,378 @@
+"""daemon.jobs: a calibration job in a spawned worker, its failure modes, the pool's shutdown, and the change
+between two results.
+
+The scene is the simulator's sil-west preset (seed 0) recorded to MCAP exactly as the daemon would have
+logged it; the job calibrates its first camera.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import multiprocessing
+import os
+import signal
+from collections.abc import Iterator
+from concurrent.futures import CancelledError
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import wait_until
+from scipy.spatial.transform import Rotation
+
+from daemon import jobs
+from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id, pipeline_params, run_job
+from daemon.recording import write_simulation_mcap
+from pipeline.calibrate import SOFTWARE_VERSION, PipelineParams
+from pipeline.simulate import SimulationResult, simulate
+from schemas.common import CameraIntrinsics
+from schemas.config import ChangeConfig, GatesConfig
+from schemas.results import CalibrationResult, CameraPosition, ReferenceFrame, Verdict
+
+CREATED_AT_NS = 1_800_000_000_000_000_000
+MARGIN_NS = 10_000_000_000
+JOB_TIMEOUT_S = 120.0  # a sil-west job takes ~2.5 s; generous for a loaded CI machine
+
+
+@dataclass(frozen=True)
+class Scene:
+    sim: SimulationResult
+    mcap: Path
+    spec: JobSpec  # the whole recording as the window, first camera
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
+    sim = simulate("sil-west", seed=0)
+    mcap = write_simulation_mcap(sim, tmp_path_factory.mktemp("jobs") / "sil-west.mcap")
+    camera = sim.cameras[0]
+    stamps = [m.stamp_ns for m in sim.v2x]
+    spec = JobSpec(
+        job_id=new_job_id(camera.camera_id, CREATED_AT_NS),
+        rsu_id=sim.rsu_id,
+        camera_id=camera.camera_id,
+        intrinsics=camera.intrinsics,
+        vehicle=sim.vehicle,
+        station_id=sim.station_id,
+        time_offset_ns=sim.ground_truth[camera.camera_id].clock_offset_ns,
+        crs=sim.origin.crs,
+        recordings=(str(mcap),),
+        window_start_ns=min(stamps) - MARGIN_NS,
+        window_end_ns=max(stamps) + MARGIN_NS,
+        gates=GatesConfig(),
+        seed=0,
+        track_workers=2,
+        created_at_ns=CREATED_AT_NS,
+        config_hash="0123456789abcdef",
+    )
+    return Scene(sim, mcap, spec)
+
+
+def _descendants(pid: int) -> set[int]:
+    """Live (non-zombie) descendants of `pid`, from /proc: the test's own oracle, not the module's helper."""
+    parents: dict[int, set[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_bytes()
+            except OSError:
+                continue
+            fields = stat[stat.rfind(b")") + 2 :].split()
+            if fields[0] != b"Z":
+                parents.setdefault(int(fields[1]), set()).add(int(entry))
+    found: set[int] = set()
+    frontier = [pid]
+    while frontier:
+        children = parents.get(frontier.pop(), set())
+        found |= children
+        frontier.extend(children)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_bytes()
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2 :].split()[0] != b"Z"
+
+
+def _worker_pids() -> set[int]:
+    return {p.pid for p in multiprocessing.active_children() if p.pid is not None}
+
+
+@pytest.fixture(scope="module")
+def runner() -> Iterator[JobRunner]:
+    before = _worker_pids()
+    job_runner = JobRunner(1)
+    workers = [p for p in multiprocessing.active_children() if p.pid not in before]
+    try:
+        yield job_runner
+    finally:
+        job_runner.shutdown(timeout_s=10.0)
+        # Idle at shutdown: the worker ends on the pool's stop sentinel (exit code 0), it is not terminated.
+        assert [p.exitcode for p in workers] == [0]
+
+
+def _result_of(outcome: JobOutcome) -> CalibrationResult:
+    assert outcome.error is None, outcome.error
+    assert outcome.result_json is not None
+    return CalibrationResult.model_validate_json(outcome.result_json)
+
+
+# ---------------------------------------------------------------------------------------------- jobs
+
+
+def test_job_in_a_spawned_worker_calibrates_sil_west(scene: Scene, runner: JobRunner) -> None:
+    spec, sim = scene.spec, scene.sim
+    future = runner.submit(spec)
+    assert runner.running() == 1
+    outcome = future.result(timeout=JOB_TIMEOUT_S)
+    wait_until(lambda: runner.running() == 0, timeout_s=5.0)
+
+    result = _result_of(outcome)
+    assert result.verdict.is_accepted, result.verdict.reasons
+    camera = sim.cameras[0]
+    origin = np.array([sim.origin.x, sim.origin.y, sim.origin.z])
+    true_centre_utm = origin - camera.R_cam_from_local.T @ camera.t_cam_from_local
+    assert result.camera_position is not None
+    # The scenario tests hold sil-west to a few cm; 0.5 m is the daemon's own position gate.
+    assert np.linalg.norm(np.array(result.camera_position.utm) - true_centre_utm) < 0.5
+    assert (result.rsu_id, result.camera_id, result.created_at_ns) == (
+        sim.rsu_id,
+        spec.camera_id,
+        CREATED_AT_NS,
+    )
+    provenance = result.provenance
+    assert (provenance.window_start_ns, provenance.window_end_ns) == (
+        spec.window_start_ns,
+        spec.window_end_ns,
+    )
+    assert provenance.recordings == [str(scene.mcap)]
+    assert provenance.station_id == sim.station_id
+    assert provenance.software_version == SOFTWARE_VERSION
+    assert provenance.config_hash == spec.config_hash
+
+    assert (outcome.job_id, outcome.camera_id) == (spec.job_id, spec.camera_id)
+    assert outcome.detections == len(sim.detections[spec.camera_id])
+    assert outcome.poses == sum(1 for m in sim.v2x if m.station_id == sim.station_id)
+    assert outcome.duration_s > 0.0
+    assert any(note.startswith("validation: ") for note in outcome.stage_notes)
+
+
+def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None:
+    first_stamp = scene.spec.window_start_ns + MARGIN_NS
+    before_any_data = dataclasses.replace(
+        scene.spec, window_start_ns=first_stamp - 100 * 10**9, window_end_ns=first_stamp - 50 * 10**9
+    )
+    outcome = run_job(before_any_data)
+    result = _result_of(outcome)
+    assert result.verdict.status == "refused"
+    assert result.verdict.reasons == ["no calibration-vehicle poses in the data window"]
+    assert (outcome.detections, outcome.poses) == (0, 0)
+    assert result.provenance.window_start_ns == before_any_data.window_start_ns
+
+    # Detections, but the station named is not in the recording: no vehicle data either.
+    other_station = run_job(dataclasses.replace(scene.spec, station_id=scene.sim.station_id + 1))
+    result = _result_of(other_station)
+    assert result.verdict.reasons == ["no calibration-vehicle poses in the data window"]
+    assert other_station.detections == len(scene.sim.detections[scene.spec.camera_id])
+    assert other_station.poses == 0
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        pytest.param({"recordings": ()}, "no recordings", id="no-recordings"),
+        pytest.param({"recordings": ("/nonexistent/r.mcap",)}, "/nonexistent/r.mcap", id="missing-file"),
+        pytest.param({"crs": "EPSG:4326"}, "is not a UTM zone", id="not-utm"),
+        pytest.param({"camera_id": "bad/camera"}, "camera_id", id="bad-camera-id"),
+        pytest.param({"window_start_ns": 0, "window_end_ns": 10}, "window_start_ns", id="window-in-seconds"),
+        pytest.param(
+            {"window_end_ns": 1_700_000_000_000_000_000}, "is before window_start_ns", id="inverted"
+        ),
+    ],
+)
+def test_failures_become_outcome_errors(scene: Scene, change: dict[str, object], expected: str) -> None:
+    outcome = run_job(dataclasses.replace(scene.spec, **change))  # type: ignore[arg-type]
+    assert outcome.result_json is None
+    assert outcome.error is not None and expected in outcome.error
+    assert outcome.job_id == scene.spec.job_id
+
+
+def test_unreadable_recording_is_an_error_a_damaged_one_among_good_ones_a_note(
+    scene: Scene, tmp_path: Path
+) -> None:
+    not_mcap = tmp_path / "notes.mcap"
+    not_mcap.write_text("hello")
+    alone = run_job(dataclasses.replace(scene.spec, recordings=(str(not_mcap),)))
+    assert alone.error is not None and "not an MCAP file" in alone.error
+
+    # The same bad file beside a good recording: the job runs on what can be read and says what was not.
+    # A window of the first 40 s keeps this quick (refused: too little of the vehicle).
+    start = scene.spec.window_start_ns
+    mixed = run_job(
+        dataclasses.replace(
+            scene.spec, recordings=(str(not_mcap), str(scene.mcap)), window_end_ns=start + 40 * 10**9
+        )
+    )
+    assert mixed.error is None and mixed.detections > 0 and mixed.poses > 0
+    assert any("not an MCAP file" in note for note in mixed.stage_notes)
+
+
+def test_a_bug_in_the_job_is_caught_with_its_traceback(scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    def broken_calibrate(*args: object, **kwargs: object) -> None:
+        raise TypeError("simulated bug")
+
+    monkeypatch.setattr(jobs, "calibrate", broken_calibrate)
+    outcome = run_job(dataclasses.replace(scene.spec, window_end_ns=scene.spec.window_start_ns + 20 * 10**9))
+    assert outcome.error == "internal error: TypeError: simulated bug"
+    assert any("broken_calibrate" in note for note in outcome.stage_notes if note.startswith("traceback: "))
+
+
+def test_shutdown_mid_job_cancels_the_queue_and_leaves_no_process(scene: Scene) -> None:
+    before = _worker_pids()
+    job_runner = JobRunner(2)
+    workers = _worker_pids() - before
+    assert len(workers) == 2  # both started (and warmed) before any job
+    # 2 running + 3 in the pool's call queue (max_workers + 1) cannot be cancelled; the 6th is still queued.
+    futures = [job_runner.submit(dataclasses.replace(scene.spec, job_id=f"job-{i}")) for i in range(6)]
+    assert job_runner.running() == 6
+    # Wait until the jobs' own track pools (forked from the workers) exist: the orphans to be avoided.
+    wait_until(lambda: any(_descendants(pid) for pid in workers), timeout_s=JOB_TIMEOUT_S)
+    processes = workers | {child for pid in workers for child in _descendants(pid)}
+    job_runner.shutdown(timeout_s=0.0)
+
+    assert not any(_alive(pid) for pid in processes)
+    assert not (_worker_pids() & workers)
+    for future in futures:
+        assert future.done()
+        with pytest.raises((CancelledError, BrokenProcessPool)):
+            future.result(timeout=0)
+    assert futures[-1].cancelled()  # never handed to a worker
+    assert job_runner.running() == 0
+    with pytest.raises(RuntimeError, match="shut down"):
+        job_runner.submit(scene.spec)
+    job_runner.shutdown(timeout_s=0.0)  # idempotent
+
+
+def test_a_worker_that_died_is_replaced(scene: Scene) -> None:
+    before = _worker_pids()
+    job_runner = JobRunner(1)
+    try:
+        (worker,) = _worker_pids() - before
+        os.kill(worker, signal.SIGKILL)  # what the kernel's OOM killer does
+        quick = dataclasses.replace(scene.spec, station_id=scene.sim.station_id + 1)  # refused at once
+        # A job submitted before the pool noticed the death fails with BrokenProcessPool (the daemon counts
+        # it as failed); the next submit starts a fresh pool and runs.
+        outcomes: list[JobOutcome] = []
+        for _attempt in range(2):
+            try:
+                outcomes.append(job_runner.submit(quick).result(timeout=JOB_TIMEOUT_S))
+                break
+            except BrokenProcessPool:
+                continue
+        assert len(outcomes) == 1 and outcomes[0].error is None
+        assert not _alive(worker)
+    finally:
+        job_runner.shutdown(timeout_s=5.0)
+    assert job_runner.running() == 0
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def test_pipeline_params_carry_the_configured_gates() -> None:
+    assert pipeline_params(GatesConfig()) == PipelineParams()
+    gates = GatesConfig(min_traversals=3, max_position_std_m=0.2, max_box_error_pct=10.0)
+    params = pipeline_params(gates)
+    assert (params.gates.min_traversals, params.gates.max_position_std_m) == (3, 0.2)
+    assert params.gates.max_box_error_pct == 10.0
+
+
+def test_job_ids_name_the_camera_and_sort_by_time() -> None:
+    assert new_job_id("west-arm", 1_717_000_000_000_000_000) == "west-arm-1717000000000000000"
+    assert new_job_id("c", 5) < new_job_id("c", 10)
+
+
+# ---------------------------------------------------------------------------------------------- compare
+
+
+def _posed_result(
+    result_id: str, R_cam_from_local: np.ndarray, centre_utm: np.ndarray, origin: np.ndarray
+) -> CalibrationResult:
+    """An accepted result with camera centre `centre_utm` (absolute) in a local frame of `origin`."""
+    t = -R_cam_from_local @ (centre_utm - origin)
+    return CalibrationResult(
+        rsu_id="rsu-1",
+        camera_id="cam",
+        result_id=result_id,
+        created_at_ns=CREATED_AT_NS,
+        frame=ReferenceFrame(crs="EPSG:32632", origin=tuple(float(v) for v in origin)),  # type: ignore[arg-type]
+        R=tuple(tuple(float(v) for v in row) for row in R_cam_from_local),  # type: ignore[arg-type]
+        t=tuple(float(v) for v in t),  # type: ignore[arg-type]
+        camera_position=CameraPosition(
+            utm=tuple(float(v) for v in centre_utm),  # type: ignore[arg-type]
+            lat=48.4,
+            lon=9.97,
+            alt=float(centre_utm[2]),
+        ),
+        intrinsics=CameraIntrinsics(width=1920, height=1080, fx=1000.0, fy=1000.0, cx=960.0, cy=540.0),
+        verdict=Verdict(status="accepted"),
+    )
+
+
+@pytest.fixture
+def current() -> CalibrationResult:
+    # A camera 9 m up looking north and 20 deg down: camera->local columns x east, y down-ish, z forward.
+    look = Rotation.from_euler("x", -110.0, degrees=True).as_matrix()
+    return _posed_result(
+        "old", look.T, np.array([572000.0, 5361000.0, 536.0]), np.array([572000.0, 5361000.0, 527.0])
+    )
+
+
+def test_compare_measures_shift_and_rotation_in_absolute_terms(current: CalibrationResult) -> None:
+    assert current.R is not None and current.camera_position is not None
+    R_old = np.array(current.R)
+    # Turned 0.8 deg about a tilted axis in the camera frame and moved 0.3 m east, 0.4 m north, 0.12 m up;
+    # the new result's local origin differs, so t alone would mislead.
+    turn = Rotation.from_rotvec(math.radians(0.8) * np.array([1.0, 2.0, 2.0]) / 3.0).as_matrix()
+    centre = np.array(current.camera_position.utm) + np.array([0.3, 0.4, 0.12])
+    new = _posed_result("new", turn @ R_old, centre, np.array([571990.0, 5361020.0, 530.0]))
+
+    change = compare_results(new, current, ChangeConfig())
+    assert change.previous_result_id == "old"
+    assert change.shift_m == pytest.approx(math.sqrt(0.3**2 + 0.4**2 + 0.12**2), abs=1e-9)
+    assert change.shift_deg == pytest.approx(0.8, abs=1e-9)
+    assert change.moved  # 0.52 m > 0.3 m and 0.8 deg > 0.5 deg
+
+    assert not compare_results(new, current, ChangeConfig(shift_m=0.6, shift_deg=1.0)).moved
+    assert compare_results(new, current, ChangeConfig(shift_m=0.6, shift_deg=0.7)).moved  # rotation alone
+    assert compare_results(new, current, ChangeConfig(shift_m=0.5, shift_deg=1.0)).moved  # shift alone
+
+
+def test_compare_same_pose_and_tiny_rotations(current: CalibrationResult) -> None:
+    same = compare_results(current, current, ChangeConfig())
+    assert (same.shift_m, same.moved) == (0.0, False) and same.shift_deg == pytest.approx(0.0, abs=1e-6)
+    assert current.R is not None and current.camera_position is not None
+    tiny = Rotation.from_rotvec([0.0, 0.0, math.radians(0.001)]).as_matrix() @ np.array(current.R)
+    nudged = _posed_result(
+        "nudged", tiny, np.array(current.camera_position.utm), np.array(current.frame.origin)
+    )
+    assert compare_results(nudged, current, ChangeConfig()).shift_deg == pytest.approx(0.001, rel=1e-6)
+
+
+def test_compare_needs_two_poses_in_one_zone(current: CalibrationResult) -> None:
+    refused = current.model_copy(
+        update={"R": None, "t": None, "camera_position": None, "verdict": Verdict(status="refused")}
+    )
+    with pytest.raises(ValueError, match="no pose"):
+        compare_results(refused, current, ChangeConfig())
+    other_zone = current.model_copy(
+        update={"frame": ReferenceFrame(crs="EPSG:32633", origin=(0.0, 0.0, 0.0))}
+    )
+    with pytest.raises(ValueError, match="different UTM zones"):
+        compare_results(other_zone, current, ChangeConfig())
