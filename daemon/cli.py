@@ -16,6 +16,7 @@ from pydantic import ValidationError
 
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
+from schemas.config import DaemonConfig
 
 # Duplicated from daemon.offline (imported lazily, like every command's dependencies) for --help.
 DEFAULT_YAML_CRS = "EPSG:32632"
@@ -112,9 +113,50 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK if outcome.result.verdict.is_accepted else EXIT_REFUSED
 
 
+def _cmd_daemon(args: argparse.Namespace) -> int:
+    from daemon.main import run_daemon
+    from pipeline.loaders import load_daemon_config
+
+    config_path = Path(args.config)
+    config = load_daemon_config(config_path)
+    config = _resolve_relative_paths(config, config_path.parent)
+    if args.log_level is None:
+        logging.getLogger().setLevel(config.log_level)
+    return run_daemon(config)
+
+
+def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
+    """Relative paths in rsu.yaml are relative to the file, as an operator would expect."""
+    storage = config.storage
+    if not storage.state_dir.is_absolute():
+        storage = storage.model_copy(update={"state_dir": (base / storage.state_dir).resolve()})
+    zenoh_config = config.zenoh
+    if zenoh_config.config_file is not None and not zenoh_config.config_file.is_absolute():
+        zenoh_config = zenoh_config.model_copy(
+            update={"config_file": (base / zenoh_config.config_file).resolve()}
+        )
+    return config.model_copy(update={"storage": storage, "zenoh": zenoh_config})
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from daemon.status import status_main
+
+    return status_main(args)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from daemon.demo import run_demo
+
+    return run_demo(preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rsucal", description="Automatic roadside camera calibration.")
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument(
+        "--log-level",
+        default=None,
+        help="logging level (default WARNING; the daemon: log_level of its config)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser(
@@ -173,13 +215,43 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cal.add_argument("--out", required=True, help="CalibrationResult JSON to write (atomically)")
     cal.set_defaults(func=_cmd_calibrate)
+
+    dmn = sub.add_parser("daemon", help="run the RSU service (Zenoh in, MCAP log, calibration out)")
+    dmn.add_argument("--config", required=True, help="rsu.yaml (see deploy/rsu.example.yaml)")
+    dmn.set_defaults(func=_cmd_daemon)
+
+    st = sub.add_parser("status", help="query calibration status and health over Zenoh, as a table")
+    st.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        help="Zenoh endpoint of the daemon or a router (repeatable; default tcp/127.0.0.1:7447)",
+    )
+    st.add_argument("--rsu", default=None, help="only this RSU (default: every RSU that answers)")
+    st.add_argument("--camera", default=None, help="only this camera")
+    st.add_argument(
+        "--timeout", dest="timeout_s", type=float, default=3.0, help="seconds to wait for answers"
+    )
+    st.add_argument("--json", action="store_true", help="print the raw JSON answers")
+    st.set_defaults(func=_cmd_status)
+
+    demo = sub.add_parser(
+        "demo", help="daemon + simulated RSU and calibration vehicle on loopback, checked against the truth"
+    )
+    demo.add_argument("--preset", default="sil-west", help="simulator preset (default sil-west, 2 cameras)")
+    demo.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
+    demo.add_argument("--rate", type=float, default=20.0, help="time acceleration (default 20x)")
+    demo.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds")
+    demo.set_defaults(func=_cmd_demo)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=(args.log_level or "WARNING").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
     try:
         code: int = args.func(args)
     except ValidationError as err:
@@ -189,8 +261,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except RsucalError as err:
+        from daemon.bus import BusError  # imported here: `rsucal simulate` should not load zenoh
+
         print(f"error: {err}", file=sys.stderr)
-        return EXIT_FAILED
+        # A daemon that cannot go on the bus (endpoint in use, bad Zenoh config) is a configuration error.
+        return EXIT_BAD_INPUT if isinstance(err, BusError) else EXIT_FAILED
     return code
 
 

@@ -29,6 +29,7 @@ from schemas.common import (
     decode_mapping,
     describe_validation_error,
 )
+from schemas.config import DaemonConfig
 from schemas.files import GroundTruth
 from schemas.messages import DetectionFrame, VehiclePose
 from schemas.results import CalibrationResult
@@ -268,6 +269,11 @@ def _load_model_json(path: Path, model: type[M]) -> M:
         return decode_json(model, _read_bytes(path))
     except ValidationError as err:
         raise InputError(str(path), describe_validation_error(err)) from err
+
+
+def load_daemon_config(path: Path) -> DaemonConfig:
+    """rsu.yaml of `rsucal daemon`; relative paths in it (state_dir, zenoh.config_file) stay as written."""
+    return _load_model_yaml(Path(path), DaemonConfig)
 
 
 def load_intrinsics(path: Path) -> CameraIntrinsics:

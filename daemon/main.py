@@ -1,0 +1,703 @@
+"""`rsucal daemon`: start-up, the two threads that own the daemon's state, and the shutdown order.
+
+Zenoh callbacks only enqueue (key, payload, received_ns). The ingest thread owns the decoder, the MCAP
+recorder and the traversal trackers: it decodes, logs, counts traversals and, when a camera is due, flushes
+the recording and hands a job to the job runner (separate processes). The supervisor thread owns the
+results: it stores each finished job atomically, publishes accepted ones and keeps the per-camera status.
+Queryable threads read immutable snapshots only. Shutdown: stop input, drain, finish the MCAP file,
+persist, close the Zenoh session, stop the workers.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import queue
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+
+import mcap
+import numpy as np
+import zenoh
+
+from daemon import __version__
+from daemon.bus import Bus, Handlers
+from daemon.clock import Clock, SystemClock
+from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
+from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
+from daemon.recording import RotatingRecorder, iter_v2x, list_recordings
+from daemon.state import CameraState, StateStore
+from daemon.traversals import (
+    Coverage,
+    JobWindow,
+    TraversalEvent,
+    TraversalTracker,
+    coverage_from_config,
+    coverage_from_result,
+)
+from pipeline.frames import UtmFrame, utm_epsg_for
+from schemas.config import DaemonConfig
+from schemas.messages import V2xPosition
+from schemas.results import CalibrationResult, CalibrationStatus, DiskUsage, Health, JobSummary, Verdict
+
+log = logging.getLogger(__name__)
+
+# How often the ingest thread checks timers (flush, rotation, quiet periods) while messages keep coming, and
+# how long it blocks on an empty inbox: both bound how late a due job starts (wall seconds).
+TICK_S = 0.05
+# On SIGTERM the whole shutdown must fit in 2 s; draining the inbox gets at most this much of it.
+DRAIN_BUDGET_S = 0.5
+# Files whose first message is this much older than a job window's start may still hold its data: a file
+# is named after its first receive time and rotated at most every storage.rotate_s.
+WINDOW_FILE_MARGIN_NS = 60_000_000_000
+# Positions projected per pyproj call when replaying recordings (one call per message would dominate).
+REPLAY_BATCH = 10_000
+PRUNE_INTERVAL_S = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class DaemonEvent:
+    """Something an operator watching live wants to see (the demo prints these)."""
+
+    kind: str  # entered | left | discarded | job_started | job_finished | published | verified | refused
+    camera_id: str
+    text: str
+    traversals: int = 0
+
+
+EventSink = Callable[[DaemonEvent], None]
+
+
+@dataclass(frozen=True, slots=True)
+class _TrackerView:
+    traversals: int
+    inside: bool
+    learning: bool
+    learning_data: bool  # learning the coverage and some calibration-vehicle data is already in
+
+
+def config_hash(config: DaemonConfig) -> str:
+    """Short stable hash of the validated config, stored in each result's provenance."""
+    return hashlib.sha256(config.model_dump_json().encode("utf-8")).hexdigest()[:16]
+
+
+def resolve_crs(config: DaemonConfig, store: StateStore) -> str | None:
+    """UTM zone of the poses: configured, else at the first camera position, else a stored result's."""
+    if config.crs is not None:
+        return config.crs
+    for camera in config.cameras:
+        if camera.position is not None:
+            return utm_epsg_for(camera.position.lat, camera.position.lon)
+    for camera in config.cameras:
+        current = store.load_current(camera.camera_id)
+        if current is not None:
+            return current.frame.crs
+    return None
+
+
+class Daemon:
+    """The RSU service for one config. start() returns once it is on the bus; stop() within 2 s."""
+
+    def __init__(
+        self, config: DaemonConfig, clock: Clock | None = None, on_event: EventSink | None = None
+    ) -> None:
+        self.clock: Clock = clock or SystemClock()
+        self.state_dir = Path(config.storage.state_dir)
+        self.store = StateStore(self.state_dir)
+        crs = resolve_crs(config, self.store)
+        self.config = config if crs is None else config.model_copy(update={"crs": crs})
+        self._on_event = on_event
+        self._config_hash = config_hash(config)
+        self._stop = threading.Event()
+        self._inbox: queue.SimpleQueue[Inbound | Callable[[], None]] = queue.SimpleQueue()
+        self._dropped = 0
+        self._dropped_lock = threading.Lock()
+
+        self.counters = Counters()
+        self.rejects = RejectLog(self.counters, self.config.ingest.warn_interval_s, self.clock)
+        self.decoder = Decoder(self.config, self.clock, self.counters, self.rejects)
+        self.recordings_dir = self.state_dir / "recordings"
+        self.recorder = RotatingRecorder(
+            self.recordings_dir, self.config.rsu_id, self.config.storage, self.clock
+        )
+        self._frame = UtmFrame(crs) if crs is not None else None
+        self.trackers: dict[str, TraversalTracker] = {}
+        self._camera_detections: dict[str, int] = {}
+
+        # Supervisor-owned; read by queryable threads under _lock.
+        self._lock = threading.Lock()
+        self._current: dict[str, CalibrationResult] = {}
+        self._current_json: dict[str, bytes] = {}
+        self._camera_state: dict[str, CameraState] = {}
+        self._tracker_views: dict[str, _TrackerView] = {}
+        self._running: dict[str, str] = {}  # camera_id -> job_id
+        self._job_started_ns: dict[str, int] = {}
+        self._job_counts: dict[str, dict[str, int]] = {}
+        self._finished: queue.SimpleQueue[tuple[JobSpec, Future[JobOutcome]]] = queue.SimpleQueue()
+
+        self._runner: JobRunner | None = None
+        self._bus: Bus | None = None
+        self._threads: list[threading.Thread] = []
+        self.started_at_ns = self.clock.now_ns()
+        self._started = False
+        self._next_prune = 0.0
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        """Recover state, start job workers and threads, then go on the bus (BusError on a bad endpoint)."""
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        self.recordings_dir.mkdir(parents=True, exist_ok=True)
+        self._recover()
+        self._runner = JobRunner(self.config.jobs.max_parallel)
+        self._threads = [
+            threading.Thread(target=self._ingest_loop, name="rsucal-ingest", daemon=True),
+            threading.Thread(target=self._supervise_loop, name="rsucal-supervisor", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+        handlers = Handlers(
+            calibration=self._answer_calibration,
+            status=self._answer_status,
+            trigger=self._answer_trigger,
+            health=self._answer_health,
+        )
+        self._bus = Bus(self.config, self._on_inbound, handlers, self.clock)
+        try:
+            self._bus.open()
+        except BaseException:
+            self.stop()
+            raise
+        self._started = True
+        log.info(
+            "rsucal %s on the bus as rsu %s: %d camera(s), listening on %s",
+            __version__,
+            self.config.rsu_id,
+            len(self.config.cameras),
+            ", ".join(self.config.zenoh.listen) or "-",
+        )
+
+    def stop(self) -> None:
+        """Stop input, drain, finish the MCAP file, persist, close the bus and the workers. Idempotent."""
+        if self._bus is not None:
+            self._bus.close()  # no new input, no more queries
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=DRAIN_BUDGET_S + 0.5)
+        self._threads = []
+        # The ingest thread closes the recorder on exit; if it never ran (start failed early) do it here.
+        self.recorder.close()
+        if self._runner is not None:
+            self._runner.shutdown(timeout_s=0.5)
+            self._runner = None
+        self._bus = None
+
+    def __enter__(self) -> Daemon:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------------------------------ recovery
+
+    def _recover(self) -> None:
+        """Load the latest validated results and rebuild traversal counts from the open window's MCAP."""
+        now_ns = self.clock.now_ns()
+        for camera in self.config.cameras:
+            camera_id = camera.camera_id
+            current = self.store.load_current(camera_id)
+            state = self.store.load_camera_state(camera_id) or CameraState()
+            coverage = coverage_from_config(camera, self._frame) if self._frame is not None else None
+            if coverage is None and current is not None:
+                coverage = coverage_from_result(current)
+            tracker = TraversalTracker(camera_id, coverage, self.config.trigger)
+            self.trackers[camera_id] = tracker
+            self._camera_detections[camera_id] = 0
+            with self._lock:
+                if current is not None:
+                    self._current[camera_id] = current
+                    self._current_json[camera_id] = current.model_dump_json().encode("utf-8")
+                self._camera_state[camera_id] = state
+                self._job_counts[camera_id] = {"jobs": 0, "accepted": 0, "refused": 0, "failed": 0}
+        replayed = self._replay_traversals(now_ns)
+        for camera_id, tracker in self.trackers.items():
+            state = self._camera_state[camera_id]
+            if state.used_until_ns is not None:
+                tracker.restore_used_until(state.used_until_ns)
+            tracker.tick(now_ns)
+            self._publish_tracker_view(camera_id)
+            log.info(
+                "camera %s: %d traversal(s) in the open window after replaying %d V2X message(s)%s",
+                camera_id,
+                tracker.snapshot().traversals,
+                replayed,
+                ""
+                if camera_id not in self._current
+                else f"; current result {self._current[camera_id].result_id}",
+            )
+
+    def _replay_traversals(self, now_ns: int, trackers: list[TraversalTracker] | None = None) -> int:
+        """Feed the open window's recorded calibration-vehicle positions through the trackers again."""
+        if self._frame is None:
+            return 0
+        targets = list(self.trackers.values()) if trackers is None else trackers
+        since_ns = now_ns - int(self.config.trigger.max_window_s * 1e9) - WINDOW_FILE_MARGIN_NS
+        files = [f.path for f in list_recordings(self.recordings_dir, self.config.rsu_id)]
+        stations = {vehicle.station_id for vehicle in self.config.vehicles}
+        replayed = 0
+        batch: list[tuple[V2xPosition, int]] = []
+        for item in iter_v2x(files, stations, since_ns):
+            batch.append(item)
+            if len(batch) >= REPLAY_BATCH:
+                replayed += self._replay_batch(batch, targets)
+                batch = []
+        return replayed + self._replay_batch(batch, targets)
+
+    def _replay_batch(self, batch: list[tuple[V2xPosition, int]], trackers: list[TraversalTracker]) -> int:
+        if not batch or self._frame is None:
+            return 0
+        lat = np.array([message.lat for message, _ in batch])
+        lon = np.array([message.lon for message, _ in batch])
+        with np.errstate(all="ignore"):
+            east, north = self._frame.to_utm(lat, lon)
+        replayed = 0
+        for (message, received_ns), x, y in zip(batch, east.tolist(), north.tolist(), strict=True):
+            if not (math.isfinite(x) and math.isfinite(y)):
+                continue
+            for tracker in trackers:
+                tracker.observe(message.station_id, message.stamp_ns, x, y, received_ns)
+            replayed += 1
+        return replayed
+
+    # ------------------------------------------------------------------------------------------ bus side
+
+    def _on_inbound(self, key: str, payload: bytes, received_ns: int) -> None:
+        """Zenoh's threads: enqueue only. A full inbox drops the newest message and counts it."""
+        if self._inbox.qsize() >= self.config.ingest.queue_size:
+            with self._dropped_lock:
+                self._dropped += 1
+            return
+        self._inbox.put(Inbound(key, payload, received_ns))
+
+    # ------------------------------------------------------------------------------------------ ingest thread
+
+    def _ingest_loop(self) -> None:
+        next_tick = 0.0
+        try:
+            while not self._stop.is_set():
+                try:
+                    item = self._inbox.get(timeout=TICK_S)
+                except queue.Empty:
+                    item = None
+                if item is not None:
+                    self._handle(item)
+                now = time.monotonic()
+                if now >= next_tick:
+                    next_tick = now + TICK_S
+                    self._tick()
+            # Drain what arrived before the bus closed, within the shutdown budget.
+            deadline = time.monotonic() + DRAIN_BUDGET_S
+            while time.monotonic() < deadline:
+                try:
+                    self._handle(self._inbox.get_nowait())
+                except queue.Empty:
+                    break
+        finally:
+            self.recorder.close()
+
+    def _handle(self, item: Inbound | Callable[[], None]) -> None:
+        if not isinstance(item, Inbound):
+            item()  # a control action posted by another thread, run where the state lives
+            return
+        decoded = self.decoder.decode(item)
+        if decoded is None:
+            return
+        if isinstance(decoded, DetectionsIn):
+            self.recorder.write_detections(
+                decoded.camera_id, decoded.frame.stamp_ns, decoded.received_ns, decoded.payload
+            )
+            self._camera_detections[decoded.camera_id] += 1
+            return
+        assert isinstance(decoded, V2xIn)
+        self.recorder.write_v2x(
+            decoded.station_id, decoded.message.stamp_ns, decoded.received_ns, decoded.payload
+        )
+        if decoded.utm is None:
+            return
+        if self._frame is None:
+            self._frame = self.decoder.frame
+        east, north = decoded.utm
+        stamp_ns = decoded.message.stamp_ns
+        for tracker in self.trackers.values():
+            events = tracker.observe(decoded.station_id, stamp_ns, east, north, decoded.received_ns)
+            if events:
+                self._emit_all(events)
+
+    def _tick(self) -> None:
+        now_ns = self.clock.now_ns()
+        self.recorder.tick()
+        self.rejects.tick()
+        for camera_id, tracker in self.trackers.items():
+            self._emit_all(tracker.tick(now_ns))
+            with self._lock:
+                busy = camera_id in self._running
+            if not busy:
+                window = tracker.due(now_ns)
+                if window is not None:
+                    self._start_job(camera_id, window, new_job_id(camera_id, now_ns))
+            self._publish_tracker_view(camera_id)
+        self._prune(now_ns)
+
+    def _prune(self, now_ns: int) -> None:
+        # prune() lists and stats the recordings directory: every few seconds is plenty.
+        if time.monotonic() < self._next_prune:
+            return
+        self._next_prune = time.monotonic() + PRUNE_INTERVAL_S
+        oldest_ns = min(
+            (t.snapshot().window_start_ns or now_ns for t in self.trackers.values()),
+            default=now_ns,
+        )
+        pruned = self.recorder.prune(keep_after_ns=oldest_ns - WINDOW_FILE_MARGIN_NS)
+        if pruned:
+            self.counters.add("recordings.pruned", len(pruned))
+
+    def _emit_all(self, events: list[TraversalEvent]) -> None:
+        for event in events:
+            text = {
+                "entered": f"vehicle {event.station_id} entered the view",
+                "left": f"vehicle {event.station_id} left: traversal {event.traversals} counted",
+                "discarded": f"vehicle {event.station_id} visit too short, not counted",
+            }.get(event.kind, event.kind)
+            log.info("camera %s: %s", event.camera_id, text)
+            self._emit(DaemonEvent(event.kind, event.camera_id, text, event.traversals))
+
+    def _publish_tracker_view(self, camera_id: str) -> None:
+        snap = self.trackers[camera_id].snapshot()
+        view = _TrackerView(
+            snap.traversals, snap.inside, snap.learning, snap.learning and snap.learn_data_s > 0
+        )
+        with self._lock:
+            self._tracker_views[camera_id] = view
+
+    def _start_job(self, camera_id: str, window: JobWindow, job_id: str) -> None:
+        """Ingest thread: make the window's data readable on disk, then hand the job to a worker."""
+        assert self._runner is not None
+        self.recorder.flush()
+        camera = self.config.camera(camera_id)
+        vehicle = self.config.vehicle(window.station_id)
+        if vehicle is None or self.config.crs is None:
+            log.error("camera %s: job %s has no calibration vehicle or no UTM zone yet", camera_id, job_id)
+            return
+        files = [
+            str(f.path)
+            for f in list_recordings(self.recordings_dir, self.config.rsu_id)
+            if f.start_ns <= window.end_ns + WINDOW_FILE_MARGIN_NS
+        ]
+        now_ns = self.clock.now_ns()
+        spec = JobSpec(
+            job_id=job_id,
+            rsu_id=self.config.rsu_id,
+            camera_id=camera_id,
+            intrinsics=camera.intrinsics,
+            vehicle=vehicle.profile,
+            station_id=window.station_id,
+            time_offset_ns=vehicle.time_offset_ns,
+            crs=self.config.crs,
+            recordings=tuple(files),
+            window_start_ns=window.start_ns,
+            window_end_ns=window.end_ns,
+            gates=self.config.gates,
+            seed=self.config.jobs.seed,
+            track_workers=self.config.jobs.track_workers,
+            created_at_ns=now_ns,
+            config_hash=self._config_hash,
+        )
+        self.trackers[camera_id].mark_used(window)
+        with self._lock:
+            self._running[camera_id] = job_id
+            self._job_started_ns[camera_id] = now_ns
+            self._job_counts[camera_id]["jobs"] += 1
+        future = self._runner.submit(spec)
+        future.add_done_callback(lambda done, spec=spec: self._finished.put((spec, done)))  # type: ignore[misc]
+        text = f"job {job_id} started on {len(window.traversals)} traversal(s)"
+        log.info("camera %s: %s", camera_id, text)
+        self._emit(DaemonEvent("job_started", camera_id, text, len(window.traversals)))
+
+    # ------------------------------------------------------------------------------------------ supervisor
+
+    def _supervise_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                spec, future = self._finished.get(timeout=TICK_S)
+            except queue.Empty:
+                continue
+            try:
+                outcome = future.result()
+            except Exception as err:  # the worker process died (killed, out of memory): the job failed
+                outcome = JobOutcome(
+                    spec.job_id, spec.camera_id, None, f"worker failed: {err!r}", 0.0, 0, 0, ()
+                )
+            self._finish_job(spec, outcome)
+
+    def _finish_job(self, spec: JobSpec, outcome: JobOutcome) -> None:
+        camera_id = spec.camera_id
+        now_ns = self.clock.now_ns()
+        with self._lock:
+            started_ns = self._job_started_ns.get(camera_id, spec.created_at_ns)
+            state = self._camera_state[camera_id]
+            current = self._current.get(camera_id)
+        duration_s = max(0.0, (now_ns - started_ns) / 1e9)
+        result: CalibrationResult | None = None
+        if outcome.result_json is not None:
+            result = CalibrationResult.model_validate_json(outcome.result_json)
+        if result is None:
+            verdict = Verdict(status="refused", reasons=[outcome.error or "the job produced no result"])
+            kind = "failed"
+        else:
+            verdict = result.verdict
+            kind = "accepted" if verdict.is_accepted else "refused"
+        publish: bytes | None = None
+        verified_at_ns = state.verified_at_ns
+        current_id = state.current_result_id
+        text: str
+        if result is not None:
+            if verdict.is_accepted and current is not None:
+                change = compare_results(result, current, self.config.change)
+                result = result.model_copy(update={"change": change})
+                if change.moved:
+                    text = (
+                        f"camera moved {change.shift_m:.2f} m / {change.shift_deg:.2f} deg: "
+                        "new result published"
+                    )
+                    publish = result.model_dump_json().encode("utf-8")
+                else:
+                    text = (
+                        f"re-verified: agrees with {current.result_id} "
+                        f"({change.shift_m:.2f} m, {change.shift_deg:.2f} deg)"
+                    )
+                    verified_at_ns = now_ns
+            elif verdict.is_accepted:
+                text = "calibrated: result published"
+                publish = result.model_dump_json().encode("utf-8")
+            else:
+                text = "refused: " + "; ".join(verdict.reasons)
+            self.store.save_result(result, current=publish is not None)
+            if publish is not None:
+                verified_at_ns = now_ns
+                current_id = result.result_id
+        else:
+            text = "failed: " + "; ".join(verdict.reasons)
+        summary = JobSummary(
+            job_id=spec.job_id,
+            started_ns=started_ns,
+            finished_ns=now_ns,
+            duration_s=duration_s,
+            verdict=verdict,
+        )
+        new_state = state.model_copy(
+            update={
+                "last_job": summary,
+                "verified_at_ns": verified_at_ns,
+                "used_until_ns": max(spec.window_end_ns, state.used_until_ns or 0),
+                "current_result_id": current_id,
+                "last_reasons": list(verdict.reasons),
+            }
+        )
+        self.store.save_camera_state(camera_id, new_state)
+        with self._lock:
+            self._camera_state[camera_id] = new_state
+            self._running.pop(camera_id, None)
+            self._job_counts[camera_id][kind] += 1
+            if publish is not None and result is not None:
+                self._current[camera_id] = result
+                self._current_json[camera_id] = publish
+        if publish is not None and result is not None:
+            if self._bus is not None:
+                self._bus.publish_calibration(camera_id, publish)
+            if self.trackers[camera_id].snapshot().learning:
+                learned = coverage_from_result(result)
+                self._inbox.put(lambda: self._learn_coverage(camera_id, learned))
+        log.info("camera %s: job %s %s (%.1f s)", camera_id, spec.job_id, text, duration_s)
+        event_kind = "published" if publish is not None else ("verified" if kind == "accepted" else kind)
+        self._emit(DaemonEvent(event_kind, camera_id, f"job {spec.job_id} {text}"))
+
+    def _learn_coverage(self, camera_id: str, coverage: Coverage) -> None:
+        """Ingest thread: count this camera's traversals where the calibrated view sees the vehicle from now
+        on; the open window is recounted at once (its traversals stay used by the job that learned it)."""
+        tracker = self.trackers[camera_id]
+        tracker.set_coverage(coverage)
+        self.recorder.flush()
+        replayed = self._replay_traversals(self.clock.now_ns(), [tracker])
+        log.info(
+            "camera %s: coverage learned from the calibration; %d positions recounted", camera_id, replayed
+        )
+        self._publish_tracker_view(camera_id)
+
+    # ------------------------------------------------------------------------------------------ queries
+
+    def _answer_calibration(self, camera_id: str) -> bytes | None:
+        with self._lock:
+            return self._current_json.get(camera_id)
+
+    def status(self, camera_id: str) -> CalibrationStatus:
+        """The camera's status as `.../calibration/status` answers it."""
+        with self._lock:
+            view = self._tracker_views.get(camera_id, _TrackerView(0, False, False, False))
+            state = self._camera_state.get(camera_id, CameraState())
+            running = self._running.get(camera_id)
+            started_ns = self._job_started_ns.get(camera_id)
+            has_current = camera_id in self._current
+            counts = dict(self._job_counts.get(camera_id, {}))
+        last_job = state.last_job
+        if running is not None and started_ns is not None:
+            last_job = JobSummary(job_id=running, started_ns=started_ns)
+            status_state = "calibrating"
+        elif has_current:
+            status_state = "calibrated"
+        elif view.traversals > 0 or view.inside or view.learning_data:
+            status_state = "collecting"
+        elif state.last_job is not None and state.last_job.verdict is not None:
+            status_state = "refused"
+        else:
+            status_state = "idle"
+        counters = {
+            "detections": self._camera_detections.get(camera_id, 0),
+            **{f"jobs.{name}" if name != "jobs" else "jobs": value for name, value in counts.items()},
+        }
+        return CalibrationStatus(
+            rsu_id=self.config.rsu_id,
+            camera_id=camera_id,
+            state=status_state,
+            traversals=view.traversals,
+            traversals_needed=self.config.trigger.min_traversals,
+            last_job=last_job,
+            current_result_id=state.current_result_id,
+            verified_at_ns=state.verified_at_ns,
+            counters=counters,
+            updated_at_ns=self.clock.now_ns(),
+        )
+
+    def _answer_status(self, camera_id: str) -> bytes:
+        return self.status(camera_id).model_dump_json().encode("utf-8")
+
+    def trigger(self, camera_id: str) -> tuple[str | None, str]:
+        """Start a job now on the camera's open window; (job id, "") or (None, reason)."""
+        self.config.camera(camera_id)
+        with self._lock:
+            running = self._running.get(camera_id)
+        if running is not None:
+            return None, f"job {running} is already running"
+        job_id = new_job_id(camera_id, self.clock.now_ns())
+
+        def start_forced() -> None:
+            with self._lock:
+                if camera_id in self._running:
+                    return
+            window = self.trackers[camera_id].force_window(self.clock.now_ns())
+            if window is None:
+                log.warning(
+                    "camera %s: trigger %s: no calibration-vehicle data in the window", camera_id, job_id
+                )
+                self._emit(
+                    DaemonEvent("refused", camera_id, f"trigger {job_id}: no calibration-vehicle data")
+                )
+                return
+            self._start_job(camera_id, window, job_id)
+
+        self._inbox.put(start_forced)
+        return job_id, ""
+
+    def _answer_trigger(self, camera_id: str) -> bytes:
+        job_id, reason = self.trigger(camera_id)
+        return json.dumps(
+            {"camera_id": camera_id, "job_id": job_id, "accepted": job_id is not None, "reason": reason}
+        ).encode("utf-8")
+
+    def health(self) -> Health:
+        """What `rsu/{rsu}/health` answers."""
+        now_ns = self.clock.now_ns()
+        counters = self.counters.snapshot()
+        with self._dropped_lock:
+            counters["inbox.dropped"] = self._dropped
+        files = list_recordings(self.recordings_dir, self.config.rsu_id)
+        try:
+            free_bytes = shutil.disk_usage(self.state_dir).free
+        except OSError:
+            free_bytes = 0
+        with self._lock:
+            jobs_running = len(self._running)
+        return Health(
+            rsu_id=self.config.rsu_id,
+            started_at_ns=self.started_at_ns,
+            updated_at_ns=now_ns,
+            uptime_s=max(0.0, (now_ns - self.started_at_ns) / 1e9),
+            cameras=[camera.camera_id for camera in self.config.cameras],
+            counters=counters,
+            inbox_depth=self._inbox.qsize(),
+            jobs_running=jobs_running,
+            disk=DiskUsage(
+                state_dir=str(self.state_dir),
+                free_bytes=free_bytes,
+                recordings_bytes=sum(f.size_bytes for f in files),
+                recordings_files=len(files),
+            ),
+            versions={
+                "rsucal": __version__,
+                "python": sys.version.split()[0],
+                "zenoh": getattr(zenoh, "__version__", "1.x"),
+                "mcap": mcap.__version__,
+            },
+        )
+
+    def _answer_health(self) -> bytes:
+        return self.health().model_dump_json().encode("utf-8")
+
+    def _emit(self, event: DaemonEvent) -> None:
+        if self._on_event is not None:
+            try:
+                self._on_event(event)
+            except Exception:  # an observer's bug must not stop the daemon
+                log.exception("event observer failed on %s", event)
+
+    # ------------------------------------------------------------------------------------------ waiting
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Block until stop is requested; True if it was."""
+        return self._stop.wait(timeout_s)
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+
+def run_daemon(config: DaemonConfig) -> int:
+    """Run until SIGTERM/SIGINT; exit code 0 on a clean stop."""
+    daemon = Daemon(config)
+    stop_requested = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("signal %d: shutting down", signum)
+        stop_requested.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        daemon.start()
+        while not stop_requested.wait(0.5):
+            pass
+    finally:
+        started = time.monotonic()
+        daemon.stop()
+        log.info("stopped in %.2f s", time.monotonic() - started)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
