@@ -48,7 +48,15 @@ from daemon.traversals import (
 from pipeline.frames import UtmFrame, utm_epsg_for
 from schemas.config import DaemonConfig
 from schemas.messages import V2xPosition
-from schemas.results import CalibrationResult, CalibrationStatus, DiskUsage, Health, JobSummary, Verdict
+from schemas.results import (
+    CalibrationResult,
+    CalibrationStatus,
+    ChangeInfo,
+    DiskUsage,
+    Health,
+    JobSummary,
+    Verdict,
+)
 
 log = logging.getLogger(__name__)
 
@@ -473,7 +481,13 @@ class Daemon:
         text: str
         if result is not None:
             if verdict.is_accepted and current is not None:
-                change = compare_results(result, current, self.config.change)
+                try:
+                    change = compare_results(result, current, self.config.change)
+                except ValueError as err:  # e.g. the UTM zone changed since current.json was written
+                    log.warning("camera %s: %s; the new result replaces the current one", camera_id, err)
+                    change = ChangeInfo(
+                        previous_result_id=current.result_id, shift_m=0.0, shift_deg=0.0, moved=True
+                    )
                 result = result.model_copy(update={"change": change})
                 if change.moved:
                     text = (
