@@ -21,3 +21,10 @@ def test_ci_runs_the_readme_test_command_verbatim() -> None:
     test_command = _readme_commands()[1]
     ci = (ROOT / ".ci" / "run").read_text()
     assert test_command in ci, "the README's test command must appear verbatim in .ci/run"
+
+
+def test_ci_runs_the_readme_main_job_verbatim() -> None:
+    """The main job's `pip install .` is the Dockerfile's install step: CI running it proves the image."""
+    main_job = _readme_commands()[0]
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert main_job in ci, "the README's first command must appear verbatim in .ci/run"
