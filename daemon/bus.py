@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import zenoh
@@ -119,17 +120,28 @@ def session_config(zenoh_config: ZenohConfig) -> zenoh.Config:
     return config
 
 
-def client_config(connect: Sequence[str], mode: Literal["peer", "client"] = "peer") -> zenoh.Config:
-    """A short-lived reader's session (`rsucal status`): connects, listens nowhere, no multicast."""
-    config = zenoh.Config()
+def client_config(
+    connect: Sequence[str], mode: Literal["peer", "client"] = "peer", config_file: Path | None = None
+) -> zenoh.Config:
+    """A short-lived reader's session (`rsucal status`): connects, listens nowhere, no multicast.
+
+    `config_file` (a Zenoh JSON5 file, e.g. deploy/zenoh/secure-client.json5 with its TLS certificate) is the
+    base; `connect`, when given, replaces its endpoints. Without a file, `connect` defaults to loopback.
+    """
     try:
-        config.insert_json5("mode", json.dumps(mode))
-        config.insert_json5("connect/endpoints", json.dumps(list(connect) or [DEFAULT_ENDPOINT]))
-        if mode == "peer":
+        if config_file is not None:
+            config = zenoh.Config.from_file(str(config_file))
+        else:
+            config = zenoh.Config()
+            config.insert_json5("mode", json.dumps(mode))
+        if connect or config_file is None:
+            config.insert_json5("connect/endpoints", json.dumps(list(connect) or [DEFAULT_ENDPOINT]))
+        if json.loads(config.get_json("mode")) == "peer":
             config.insert_json5("listen/endpoints", "[]")
         config.insert_json5("scouting/multicast/enabled", "false")
     except zenoh.ZError as err:
-        raise BusError(f"zenoh client config: {zenoh_message(err)}") from err
+        where = f"zenoh config {config_file}" if config_file is not None else "zenoh client config"
+        raise BusError(f"{where}: {zenoh_message(err)}") from err
     return config
 
 

@@ -227,6 +227,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="Zenoh endpoint of the daemon or a router (repeatable; default tcp/127.0.0.1:7447)",
     )
+    st.add_argument(
+        "--zenoh-config",
+        default=None,
+        help="Zenoh JSON5 base config (TLS client certificate), e.g. deploy/zenoh/secure-client.json5",
+    )
     st.add_argument("--rsu", default=None, help="only this RSU (default: every RSU that answers)")
     st.add_argument("--camera", default=None, help="only this camera")
     st.add_argument(

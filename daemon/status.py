@@ -15,6 +15,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import TypeVar
 
 import zenoh
@@ -101,10 +102,15 @@ def _check_key(key: str, expected: str, problems: list[str]) -> None:
 
 
 def fetch_status(
-    connect: Sequence[str], rsu: str | None, camera: str | None, timeout_s: float
+    connect: Sequence[str],
+    rsu: str | None,
+    camera: str | None,
+    timeout_s: float,
+    zenoh_config: Path | None = None,
 ) -> StatusReport:
     """Query `rsu/{rsu or *}/camera/{camera or *}/calibration[/status]`, `rsu/{rsu or *}/health` and the
-    liveliness tokens `rsu/{rsu or *}/alive` through `connect` (default tcp/127.0.0.1:7447).
+    liveliness tokens `rsu/{rsu or *}/alive` through `connect` (default tcp/127.0.0.1:7447); `zenoh_config`
+    is a Zenoh JSON5 base config (TLS certificates for a secure site).
 
     Raises InputError for a malformed --rsu/--camera and BusError when no session can be opened.
     """
@@ -112,8 +118,9 @@ def fetch_status(
     camera_part = _check_identifier("--camera", camera)
     if not timeout_s > 0.0:
         raise InputError("--timeout-s", f"{timeout_s} must be positive")
-    endpoints = tuple(connect) or (DEFAULT_ENDPOINT,)
-    session = open_session(client_config(endpoints), endpoints)
+    endpoints = tuple(connect) or (() if zenoh_config is not None else (DEFAULT_ENDPOINT,))
+    where = endpoints or (f"the endpoints of {zenoh_config}",)
+    session = open_session(client_config(endpoints, config_file=zenoh_config), where)
     try:
         # All gets in flight at once: the read takes one timeout at worst, not four.
         pending_statuses = start_query(session, status_key(rsu_part, camera_part), timeout_s)
@@ -332,7 +339,8 @@ def status_main(args: argparse.Namespace) -> int:
     """
     connect = [str(endpoint) for endpoint in (args.connect or [])]
     try:
-        report = fetch_status(connect, args.rsu, args.camera, float(args.timeout_s))
+        zenoh_config = Path(args.zenoh_config) if getattr(args, "zenoh_config", None) else None
+        report = fetch_status(connect, args.rsu, args.camera, float(args.timeout_s), zenoh_config)
     except BusError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_NO_ANSWER
