@@ -31,7 +31,7 @@ import numpy as np
 import zenoh
 
 from daemon import __version__
-from daemon.bus import Bus, Handlers
+from daemon.bus import Bus, Handlers, session_config
 from daemon.clock import Clock, SystemClock
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
 from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
@@ -159,6 +159,7 @@ class Daemon:
         self.started_at_ns = self.clock.now_ns()
         self._started = False
         self._next_prune = 0.0
+        self._failure: str | None = None
 
     # ------------------------------------------------------------------------------------------ lifecycle
 
@@ -169,8 +170,12 @@ class Daemon:
         self._recover()
         self._runner = JobRunner(self.config.jobs.max_parallel)
         self._threads = [
-            threading.Thread(target=self._ingest_loop, name="rsucal-ingest", daemon=True),
-            threading.Thread(target=self._supervise_loop, name="rsucal-supervisor", daemon=True),
+            threading.Thread(
+                target=self._guarded, args=(self._ingest_loop,), name="rsucal-ingest", daemon=True
+            ),
+            threading.Thread(
+                target=self._guarded, args=(self._supervise_loop,), name="rsucal-supervisor", daemon=True
+            ),
         ]
         for thread in self._threads:
             thread.start()
@@ -187,12 +192,15 @@ class Daemon:
             self.stop()
             raise
         self._started = True
+        effective = session_config(self.config.zenoh)
         log.info(
-            "rsucal %s on the bus as rsu %s: %d camera(s), listening on %s",
+            "rsucal %s on the bus as rsu %s: %d camera(s), zenoh %s, listen %s, connect %s",
             __version__,
             self.config.rsu_id,
             len(self.config.cameras),
-            ", ".join(self.config.zenoh.listen) or "-",
+            json.loads(effective.get_json("mode")),
+            effective.get_json("listen/endpoints"),
+            effective.get_json("connect/endpoints"),
         )
 
     def stop(self) -> None:
@@ -216,6 +224,23 @@ class Daemon:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    @property
+    def failure(self) -> str | None:
+        """Why one of the daemon's own threads died (the process must then exit non-zero), or None."""
+        return self._failure
+
+    def _guarded(self, loop: Callable[[], None]) -> None:
+        """Run a thread's loop; if it dies, say why and stop the daemon rather than run on half-alive (a
+        supervisor like systemd restarts it, and the recordings and state are intact)."""
+        try:
+            loop()
+        except BaseException as err:
+            self._failure = f"{threading.current_thread().name}: {err!r}"
+            log.critical(
+                "thread %s died; stopping the daemon", threading.current_thread().name, exc_info=True
+            )
+            self._stop.set()
 
     # ------------------------------------------------------------------------------------------ recovery
 
@@ -695,7 +720,7 @@ class Daemon:
 
 
 def run_daemon(config: DaemonConfig) -> int:
-    """Run until SIGTERM/SIGINT; exit code 0 on a clean stop."""
+    """Run until SIGTERM/SIGINT; exit code 0 on a clean stop, 1 when one of the daemon's threads died."""
     daemon = Daemon(config)
     stop_requested = threading.Event()
 
@@ -706,12 +731,16 @@ def run_daemon(config: DaemonConfig) -> int:
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         daemon.start()
-        while not stop_requested.wait(0.5):
-            pass
+        while not stop_requested.wait(0.2):
+            if daemon.failure is not None:
+                break
     finally:
         started = time.monotonic()
         daemon.stop()
         log.info("stopped in %.2f s", time.monotonic() - started)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if daemon.failure is not None:
+        log.error("exiting after a fatal error in %s", daemon.failure)
+        return 1
     return 0

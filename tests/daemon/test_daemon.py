@@ -290,3 +290,22 @@ def test_sigterm_finishes_the_recording_and_exits(
         summary = make_reader(stream).get_summary()  # a finished file has a summary section
     assert summary is not None and summary.statistics is not None
     assert summary.statistics.message_count == len(sent)
+
+
+def test_a_dead_thread_stops_the_daemon_with_its_reason(sim: SimulationResult, tmp_path: Path) -> None:
+    """Half-alive is worse than dead: a supervisor (systemd, Docker) restarts a daemon that exits."""
+    config = _config(sim, tmp_path / "state")
+    daemon = Daemon(config)
+    try:
+        daemon.start()
+
+        def broken_control_action() -> None:
+            raise ZeroDivisionError("injected")
+
+        # The inbox carries control actions run on the ingest thread; this one stands for any bug there.
+        daemon._inbox.put(broken_control_action)
+        wait_until(lambda: daemon.failure is not None, timeout_s=5)
+        assert "rsucal-ingest" in str(daemon.failure) and "ZeroDivisionError" in str(daemon.failure)
+        assert daemon.wait(timeout_s=5)  # the stop event is set
+    finally:
+        daemon.stop()
