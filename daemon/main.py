@@ -455,6 +455,7 @@ class Daemon:
             track_workers=self.config.jobs.track_workers,
             created_at_ns=now_ns,
             config_hash=self._config_hash,
+            timeout_s=self.config.jobs.timeout_s,
         )
         self.trackers[camera_id].mark_used(window)
         with self._lock:

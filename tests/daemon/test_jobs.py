@@ -7,11 +7,17 @@ logged it; the job calibrates its first camera.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import multiprocessing
 import os
+import pickle
 import signal
+import subprocess
+import sys
+import threading
+import time
 from collections.abc import Iterator
 from concurrent.futures import CancelledError
 from concurrent.futures.process import BrokenProcessPool
@@ -24,7 +30,18 @@ from helpers import wait_until
 from scipy.spatial.transform import Rotation
 
 from daemon import jobs
-from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id, pipeline_params, run_job
+from daemon.jobs import (
+    TIMEOUT_RETRY_S,
+    JobOutcome,
+    JobRunner,
+    JobSpec,
+    JobTimeout,
+    _time_limit,
+    compare_results,
+    new_job_id,
+    pipeline_params,
+    run_job,
+)
 from daemon.recording import write_simulation_mcap
 from pipeline.calibrate import SOFTWARE_VERSION, PipelineParams
 from pipeline.simulate import SimulationResult, simulate
@@ -32,6 +49,7 @@ from schemas.common import CameraIntrinsics
 from schemas.config import ChangeConfig, GatesConfig
 from schemas.results import CalibrationResult, CameraPosition, ReferenceFrame, Verdict
 
+ROOT = Path(__file__).resolve().parents[2]
 CREATED_AT_NS = 1_800_000_000_000_000_000
 MARGIN_NS = 10_000_000_000
 JOB_TIMEOUT_S = 120.0  # a sil-west job takes ~2.5 s; generous for a loaded CI machine
@@ -100,17 +118,43 @@ def _alive(pid: int) -> bool:
     return stat[stat.rfind(b")") + 2 :].split()[0] != b"Z"
 
 
+def _parent(pid: int) -> int | None:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_bytes()
+    except OSError:
+        return None
+    return int(stat[stat.rfind(b")") + 2 :].split()[1])
+
+
+def _cpu_ticks(pid: int) -> int:
+    """User + system CPU time of `pid` in clock ticks (0 once gone)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_bytes()
+    except OSError:
+        return 0
+    fields = stat[stat.rfind(b")") + 2 :].split()
+    return int(fields[11]) + int(fields[12])
+
+
 def _worker_pids() -> set[int]:
     return {p.pid for p in multiprocessing.active_children() if p.pid is not None}
 
 
+@dataclass(frozen=True)
+class Warm:
+    runner: JobRunner
+    worker: int  # pid of its one worker process
+
+
 @pytest.fixture(scope="module")
-def runner() -> Iterator[JobRunner]:
+def warm() -> Iterator[Warm]:
+    """One runner for several tests: a job that timed out must leave its worker fit for the next one."""
     before = _worker_pids()
     job_runner = JobRunner(1)
     workers = [p for p in multiprocessing.active_children() if p.pid not in before]
+    assert len(workers) == 1 and workers[0].pid is not None
     try:
-        yield job_runner
+        yield Warm(job_runner, workers[0].pid)
     finally:
         job_runner.shutdown(timeout_s=10.0)
         # Idle at shutdown: the worker ends on the pool's stop sentinel (exit code 0), it is not terminated.
@@ -126,8 +170,8 @@ def _result_of(outcome: JobOutcome) -> CalibrationResult:
 # ---------------------------------------------------------------------------------------------- jobs
 
 
-def test_job_in_a_spawned_worker_calibrates_sil_west(scene: Scene, runner: JobRunner) -> None:
-    spec, sim = scene.spec, scene.sim
+def test_job_in_a_spawned_worker_calibrates_sil_west(scene: Scene, warm: Warm) -> None:
+    spec, sim, runner = scene.spec, scene.sim, warm.runner
     future = runner.submit(spec)
     assert runner.running() == 1
     outcome = future.result(timeout=JOB_TIMEOUT_S)
@@ -194,6 +238,8 @@ def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None
         pytest.param(
             {"window_end_ns": 1_700_000_000_000_000_000}, "is before window_start_ns", id="inverted"
         ),
+        pytest.param({"timeout_s": 0.0}, "timeout_s = 0.0 must be a positive", id="no-time"),
+        pytest.param({"timeout_s": math.nan}, "timeout_s = nan must be a positive", id="nan-time"),
     ],
 )
 def test_failures_become_outcome_errors(scene: Scene, change: dict[str, object], expected: str) -> None:
@@ -231,6 +277,122 @@ def test_a_bug_in_the_job_is_caught_with_its_traceback(scene: Scene, monkeypatch
     outcome = run_job(dataclasses.replace(scene.spec, window_end_ns=scene.spec.window_start_ns + 20 * 10**9))
     assert outcome.error == "internal error: TypeError: simulated bug"
     assert any("broken_calibrate" in note for note in outcome.stage_notes if note.startswith("traceback: "))
+
+
+# ---------------------------------------------------------------------------------------------- time limits
+
+
+def test_a_job_past_its_time_limit_fails_and_the_next_one_runs(scene: Scene, warm: Warm) -> None:
+    # The whole sil-west job takes ~2.5 s; half a second ends it while it is still reading the window.
+    slow = dataclasses.replace(scene.spec, job_id="slow", timeout_s=0.5)
+    outcome = warm.runner.submit(slow).result(timeout=JOB_TIMEOUT_S)
+    assert (outcome.job_id, outcome.result_json, outcome.error) == ("slow", None, "timed out after 0.5 s")
+    assert 0.5 <= outcome.duration_s < 0.5 + JOB_TIMEOUT_S / 10
+    assert _alive(warm.worker) and not _descendants(warm.worker)
+    wait_until(lambda: warm.runner.running() == 0, timeout_s=5.0)
+
+    # The camera's next job runs in the same worker, with the default 900 s, and calibrates.
+    assert scene.spec.timeout_s == 900.0
+    result = _result_of(warm.runner.submit(scene.spec).result(timeout=JOB_TIMEOUT_S))
+    assert result.verdict.is_accepted, result.verdict.reasons
+    assert _alive(warm.worker)
+
+
+def test_the_time_limit_stops_the_track_pool_and_keeps_the_worker(scene: Scene, warm: Warm) -> None:
+    future = warm.runner.submit(scene.spec)
+    # Once the job's track pool is at work, deliver what the job's own timer delivers at its limit: the
+    # test decides when (inside calibrate(), with processes to stop), not the machine's speed. At work:
+    # both forked and busy, so the worker is past fork() (whose callbacks swallow exceptions, which the
+    # real timer survives by repeating; this single signal would not).
+    wait_until(
+        lambda: len(busy := _descendants(warm.worker)) == 2 and all(_cpu_ticks(pid) > 1 for pid in busy),
+        timeout_s=JOB_TIMEOUT_S,
+    )
+    track_workers = _descendants(warm.worker)
+    os.kill(warm.worker, signal.SIGALRM)
+    outcome = future.result(timeout=JOB_TIMEOUT_S)
+    assert outcome.error == "timed out after 900 s"
+    # What the job had found is kept: the window's counts and notes.
+    assert outcome.detections == len(scene.sim.detections[scene.spec.camera_id]) and outcome.poses > 0
+    assert any(note.startswith("window: ") for note in outcome.stage_notes)
+    assert not any(_alive(pid) for pid in track_workers)
+    assert not _descendants(warm.worker) and _alive(warm.worker)
+
+
+def test_run_job_disarms_its_timer_and_restores_the_handler(scene: Scene) -> None:
+    def mine(signum: int, frame: object) -> None:
+        raise AssertionError("SIGALRM after the job")
+
+    previous = signal.signal(signal.SIGALRM, mine)
+    try:
+        done = run_job(dataclasses.replace(scene.spec, station_id=scene.sim.station_id + 1, timeout_s=60.0))
+        assert done.error is None
+        timed_out = run_job(dataclasses.replace(scene.spec, timeout_s=0.2))
+        assert timed_out.error == "timed out after 0.2 s"
+        assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+        assert signal.getsignal(signal.SIGALRM) is mine
+    finally:
+        signal.signal(signal.SIGALRM, previous)
+
+
+def test_a_swallowed_timeout_is_raised_again() -> None:
+    # As when the signal lands in an os.fork() callback or a __del__: Python prints "Exception ignored"
+    # and carries on; the timer repeats, so the job still ends.
+    swallowed = 0
+    with pytest.raises(JobTimeout), _time_limit(0.05):
+        try:
+            wait_until(lambda: False, timeout_s=5.0)
+        except JobTimeout:
+            swallowed += 1
+        wait_until(lambda: False, timeout_s=5.0)
+    assert swallowed == 1
+    assert signal.getitimer(signal.ITIMER_REAL) == (0.0, 0.0)
+
+
+def test_the_repeating_timer_spares_the_cleanup_of_a_timeout() -> None:
+    cleaned_up = False
+    with pytest.raises(JobTimeout), _time_limit(0.05):
+        try:
+            wait_until(lambda: False, timeout_s=5.0)
+        finally:
+            # A cleanup (killing and reaping a track pool) longer than the repeat interval runs to its end.
+            cleanup_done = time.monotonic() + 2.5 * TIMEOUT_RETRY_S
+            wait_until(lambda: time.monotonic() > cleanup_done, timeout_s=5.0)
+            cleaned_up = True
+    assert cleaned_up
+
+
+def test_a_worker_deaf_to_its_time_limit_is_killed_and_queued_jobs_move_on(scene: Scene) -> None:
+    before = _worker_pids()
+    job_runner = JobRunner(1, kill_grace_s=0.5)
+    try:
+        (worker,) = _worker_pids() - before
+        stuck = job_runner.submit(dataclasses.replace(scene.spec, job_id="stuck", timeout_s=3.0))
+        quick = dataclasses.replace(scene.spec, station_id=scene.sim.station_id + 1)  # refused at once
+        queued = [job_runner.submit(dataclasses.replace(quick, job_id=f"queued-{i}")) for i in range(4)]
+        wait_until(lambda: _descendants(worker), timeout_s=JOB_TIMEOUT_S)
+        processes = {worker} | _descendants(worker)
+        # Stopped, it cannot run its timer's handler: as stuck as a native call that never returns.
+        os.kill(worker, signal.SIGSTOP)
+
+        outcome = stuck.result(timeout=JOB_TIMEOUT_S)
+        assert outcome.error == "timed out after 3 s: the worker did not stop and was killed"
+        assert outcome.result_json is None and outcome.duration_s >= 3.5
+        wait_until(lambda: not any(_alive(pid) for pid in processes), timeout_s=10.0)
+
+        # Jobs already handed to the killed pool fail with it (as when a worker dies); those no worker
+        # had taken run in the new pool, the last one submitted among them.
+        finished: list[JobOutcome] = []
+        for future in queued:
+            with contextlib.suppress(BrokenProcessPool):
+                finished.append(future.result(timeout=JOB_TIMEOUT_S))
+        assert finished and all(o.error is None for o in finished)
+        assert finished[-1].job_id == "queued-3"
+        (new_worker,) = _worker_pids() - before
+        assert new_worker != worker
+        assert job_runner.running() == 0
+    finally:
+        job_runner.shutdown(timeout_s=5.0)
 
 
 def test_shutdown_mid_job_cancels_the_queue_and_leaves_no_process(scene: Scene) -> None:
@@ -280,6 +442,74 @@ def test_a_worker_that_died_is_replaced(scene: Scene) -> None:
     finally:
         job_runner.shutdown(timeout_s=5.0)
     assert job_runner.running() == 0
+
+
+# ------------------------------------------------------------------------------------- dying with the daemon
+
+_DAEMON = """
+import pickle, sys
+from pathlib import Path
+from daemon.jobs import JobRunner
+runner = JobRunner(1)
+runner.submit(pickle.loads(Path(sys.argv[1]).read_bytes()))
+print("submitted", flush=True)
+sys.stdin.read()  # until the test kills this process
+"""
+
+
+def test_a_killed_daemon_leaves_no_worker_behind(scene: Scene, tmp_path: Path) -> None:
+    spec_path = tmp_path / "spec.pickle"
+    spec_path.write_bytes(pickle.dumps(scene.spec))
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+    }
+    process = subprocess.Popen(
+        [sys.executable, "-c", _DAEMON, str(spec_path)],
+        cwd=ROOT,
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().strip() == "submitted"
+        # The job worker and the track pool it forked: processes two levels below the "daemon".
+        tree: set[int] = set()
+
+        def job_running() -> bool:
+            tree.clear()
+            tree.update(_descendants(process.pid))
+            return any(_parent(pid) in tree for pid in tree)
+
+        wait_until(job_running, timeout_s=JOB_TIMEOUT_S)
+        assert len(tree) >= 3  # worker + 2 track-pool processes (and multiprocessing's resource tracker)
+        process.kill()  # SIGKILL: no shutdown code of the daemon runs
+        process.wait(timeout=10)
+        wait_until(lambda: not any(_alive(pid) for pid in tree), timeout_s=10.0)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=10)
+
+
+def test_a_runner_made_on_a_passing_thread_keeps_its_workers(scene: Scene) -> None:
+    # The kernel's parent-death signal fires when the *thread* that created a worker ends; the runner
+    # creates its pools on a thread of its own, so the caller's thread may come and go.
+    before = _worker_pids()
+    made: list[JobRunner] = []
+    thread = threading.Thread(target=lambda: made.append(JobRunner(1)))
+    thread.start()
+    thread.join()
+    (job_runner,) = made
+    try:
+        (worker,) = _worker_pids() - before
+        quick = dataclasses.replace(scene.spec, station_id=scene.sim.station_id + 1)
+        assert job_runner.submit(quick).result(timeout=JOB_TIMEOUT_S).error is None
+        assert _alive(worker)
+    finally:
+        job_runner.shutdown(timeout_s=5.0)
 
 
 # ---------------------------------------------------------------------------------------------- helpers
