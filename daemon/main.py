@@ -71,6 +71,8 @@ WINDOW_FILE_MARGIN_NS = 60_000_000_000
 # Positions projected per pyproj call when replaying recordings (one call per message would dominate).
 REPLAY_BATCH = 10_000
 PRUNE_INTERVAL_S = 5.0
+# A trigger query waits this long (wall) for the ingest thread to start its job, then answers "busy".
+TRIGGER_TIMEOUT_S = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -423,19 +425,24 @@ class Daemon:
         with self._lock:
             self._tracker_views[camera_id] = view
 
-    def _start_job(self, camera_id: str, window: JobWindow, job_id: str) -> None:
-        """Ingest thread: make the window's data readable on disk, then hand the job to a worker."""
+    def _start_job(self, camera_id: str, window: JobWindow, job_id: str) -> bool:
+        """Ingest thread: make the window's data readable on disk, then hand the job to a worker; whether it
+        started."""
         assert self._runner is not None
         self.recorder.flush()
         camera = self.config.camera(camera_id)
         vehicle = self.config.vehicle(window.station_id)
         if vehicle is None or self.config.crs is None:
             log.error("camera %s: job %s has no calibration vehicle or no UTM zone yet", camera_id, job_id)
-            return
+            return False
+        # Files are named by the receive time of their first message, windows are producer stamps. Data can
+        # arrive late (a detector's backlog after a link outage), so a file is ruled out only when all its
+        # data was received before the window began (its successor started before), never by the end.
+        recordings = list_recordings(self.recordings_dir, self.config.rsu_id)
         files = [
             str(f.path)
-            for f in list_recordings(self.recordings_dir, self.config.rsu_id)
-            if f.start_ns <= window.end_ns + WINDOW_FILE_MARGIN_NS
+            for f, following in zip(recordings, [*recordings[1:], None], strict=True)
+            if following is None or following.start_ns >= window.start_ns - WINDOW_FILE_MARGIN_NS
         ]
         now_ns = self.clock.now_ns()
         spec = JobSpec(
@@ -467,6 +474,7 @@ class Daemon:
         text = f"job {job_id} started on {len(window.traversals)} traversal(s)"
         log.info("camera %s: %s", camera_id, text)
         self._emit(DaemonEvent("job_started", camera_id, text, len(window.traversals)))
+        return True
 
     # ------------------------------------------------------------------------------------------ supervisor
 
@@ -532,7 +540,15 @@ class Daemon:
                 publish = result.model_dump_json().encode("utf-8")
             else:
                 text = "refused: " + "; ".join(verdict.reasons)
-            self.store.save_result(result, current=publish is not None)
+            try:
+                self.store.save_result(result, current=publish is not None)
+            except OSError as err:
+                # Not stored, not published: after a restart the queryable must answer what was published.
+                reason = f"result {result.result_id} could not be stored: {err}"
+                log.error("camera %s: job %s: %s", camera_id, spec.job_id, reason)
+                verdict = Verdict(status="refused", reasons=[*verdict.reasons, reason])
+                kind, publish, text = "failed", None, "failed: " + reason
+                verified_at_ns = state.verified_at_ns
             if publish is not None:
                 verified_at_ns = now_ns
                 current_id = result.result_id
@@ -554,7 +570,10 @@ class Daemon:
                 "last_reasons": list(verdict.reasons),
             }
         )
-        self.store.save_camera_state(camera_id, new_state)
+        try:
+            self.store.save_camera_state(camera_id, new_state)
+        except OSError as err:  # the state in memory still answers queries; the next save may succeed
+            log.error("camera %s: saving the camera state failed: %s", camera_id, err)
         with self._lock:
             self._camera_state[camera_id] = new_state
             self._running.pop(camera_id, None)
@@ -631,32 +650,46 @@ class Daemon:
     def _answer_status(self, camera_id: str) -> bytes:
         return self.status(camera_id).model_dump_json().encode("utf-8")
 
-    def trigger(self, camera_id: str) -> tuple[str | None, str]:
-        """Start a job now on the camera's open window; (job id, "") or (None, reason)."""
+    def trigger(self, camera_id: str, timeout_s: float = TRIGGER_TIMEOUT_S) -> tuple[str | None, str]:
+        """Start a job now on the camera's open window; (job id, "") once it started, else (None, reason)."""
         self.config.camera(camera_id)
         with self._lock:
             running = self._running.get(camera_id)
         if running is not None:
             return None, f"job {running} is already running"
-        job_id = new_job_id(camera_id, self.clock.now_ns())
+        answer: Future[tuple[str | None, str]] = Future()
 
         def start_forced() -> None:
+            # On the ingest thread, which starts every job: the check and the start cannot interleave
+            # with another trigger or a due job.
+            if not answer.set_running_or_notify_cancel():
+                return  # the caller gave up waiting and was told so
             with self._lock:
-                if camera_id in self._running:
-                    return
-            window = self.trackers[camera_id].force_window(self.clock.now_ns())
-            if window is None:
-                log.warning(
-                    "camera %s: trigger %s: no calibration-vehicle data in the window", camera_id, job_id
-                )
-                self._emit(
-                    DaemonEvent("refused", camera_id, f"trigger {job_id}: no calibration-vehicle data")
-                )
+                running = self._running.get(camera_id)
+            if running is not None:
+                answer.set_result((None, f"job {running} is already running"))
                 return
-            self._start_job(camera_id, window, job_id)
+            now_ns = self.clock.now_ns()
+            window = self.trackers[camera_id].force_window(now_ns)
+            if window is None:
+                reason = "no calibration-vehicle data in the window"
+                log.warning("camera %s: trigger: %s", camera_id, reason)
+                self._emit(DaemonEvent("refused", camera_id, f"trigger: {reason}"))
+                answer.set_result((None, reason))
+                return
+            job_id = new_job_id(camera_id, now_ns)
+            if self._start_job(camera_id, window, job_id):
+                answer.set_result((job_id, ""))
+            else:
+                answer.set_result((None, "no calibration vehicle or no UTM zone for the window"))
 
         self._inbox.put(start_forced)
-        return job_id, ""
+        try:
+            return answer.result(timeout=timeout_s)
+        except TimeoutError:
+            if answer.cancel():
+                return None, f"the daemon is busy: no job started within {timeout_s:g} s, try again"
+            return answer.result()  # it started meanwhile: the start itself is quick
 
     def _answer_trigger(self, camera_id: str) -> bytes:
         job_id, reason = self.trigger(camera_id)

@@ -9,6 +9,7 @@ damaged current.json is reported and replaced by the best history entry, never f
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -238,7 +239,8 @@ def _write_atomic(path: Path, data: bytes, root: Path) -> None:
             os.close(fd)
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # cleanup must not hide the error that brought us here
+            tmp.unlink(missing_ok=True)
         raise
     _fsync_dir(path.parent)  # ... and the new name itself survives a power loss
 
