@@ -100,6 +100,9 @@ class JobOutcome:
     detections: int  # detection frames of the camera in the window
     poses: int  # calibration-vehicle poses in the window
     stage_notes: tuple[str, ...]  # window reading and each stage's kept/discarded, for logs and status
+    # Last stamp of the newest image track in the chosen group: tells whether a re-verification really used
+    # the new drive-past, or only the older ones still in the window.
+    newest_track_end_ns: int | None = None
 
 
 # ---------------------------------------------------------------------------------------------- the job
@@ -295,6 +298,9 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
             detections,
             poses,
             tuple(notes),
+            newest_track_end_ns=max((end for _, end in outcome.chosen.track_spans), default=None)
+            if outcome.chosen is not None
+            else None,
         )
     except RsucalError as err:  # RecordingError, InputError, DegenerateGeometry, ShapeError
         return failed(f"{type(err).__name__}: {err}")

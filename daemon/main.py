@@ -523,7 +523,17 @@ class Daemon:
                         previous_result_id=current.result_id, shift_m=0.0, shift_deg=0.0, moved=True
                     )
                 result = result.model_copy(update={"change": change})
-                if change.moved:
+                # Only a fit that used boxes of a drive-past newer than the last job's window can confirm
+                # or overturn the current result; the older drive-pasts alone would just repeat it.
+                is_fresh = outcome.newest_track_end_ns is not None and (
+                    state.used_until_ns is None or outcome.newest_track_end_ns > state.used_until_ns
+                )
+                if not is_fresh:
+                    text = (
+                        f"not a re-verification: the fit used no box of the new drive-past "
+                        f"({change.shift_m:.2f} m, {change.shift_deg:.2f} deg from {current.result_id})"
+                    )
+                elif change.moved:
                     text = (
                         f"camera moved {change.shift_m:.2f} m / {change.shift_deg:.2f} deg: "
                         "new result published"

@@ -141,6 +141,7 @@ class Candidate:
     box_error_rel: float  # median over boxes of max |edge residual| / box height (scale-free)
     metrics: DeltaPSummary  # paper IV-B on the merged tracks with the whole-box pose
     traversals: int
+    track_spans: tuple[tuple[int, int], ...] = ()  # (first, last) stamp ns of each member track
 
     @property
     def delta_p_mean_m(self) -> float:
@@ -470,6 +471,7 @@ def _finish_candidate(
         box_error_rel=box_error,
         metrics=metrics,
         traversals=traversals,
+        track_spans=tuple(spans),
     )
 
 

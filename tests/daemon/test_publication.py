@@ -9,6 +9,7 @@ calibration vehicle drives past again. A client session subscribes and queries l
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -142,7 +143,10 @@ def _spec(config: DaemonConfig, camera_id: str, now_ns: int) -> JobSpec:
 
 def _outcome(spec: JobSpec, result: CalibrationResult | None, error: str | None = None) -> JobOutcome:
     result_json = None if result is None else result.model_dump_json()
-    return JobOutcome(spec.job_id, spec.camera_id, result_json, error, 1.0, 0, 0, ())
+    # The fit used boxes up to the window's end, i.e. of the newest drive-past.
+    return JobOutcome(
+        spec.job_id, spec.camera_id, result_json, error, 1.0, 0, 0, (), newest_track_end_ns=spec.window_end_ns
+    )
 
 
 def _status(client: zenoh.Session, config: DaemonConfig, camera_id: str) -> CalibrationStatus | None:
@@ -286,7 +290,13 @@ class Camera:
             update={"camera_id": self.camera_id, "result_id": result_id, "created_at_ns": self.now_ns()}
         )
 
-    def finish(self, result: CalibrationResult | None, error: str | None = None) -> JobSpec:
+    def finish(
+        self,
+        result: CalibrationResult | None,
+        error: str | None = None,
+        *,
+        newest_track_end_ns: int | None = None,
+    ) -> JobSpec:
         """Hand a finished job to the supervisor's decision function, as the supervisor thread does.
 
         _finish_job is private, but it is the one place that decides publication, change detection and
@@ -294,7 +304,10 @@ class Camera:
         running the pipeline (the end-to-end tests below run it).
         """
         spec = _spec(self.site.config, self.camera_id, self.now_ns())
-        self.site.daemon._finish_job(spec, _outcome(spec, result, error))
+        outcome = _outcome(spec, result, error)
+        if newest_track_end_ns is not None:
+            outcome = dataclasses.replace(outcome, newest_track_end_ns=newest_track_end_ns)
+        self.site.daemon._finish_job(spec, outcome)
         return spec
 
     def status(self) -> CalibrationStatus:
@@ -403,6 +416,28 @@ def test_agreeing_result_refreshes_verification_and_publishes_nothing(camera: Ca
     # Nothing was put for it: the next publication (a moved camera) directly follows the first.
     camera.finish(_displaced(first, "moved", camera.now_ns(), shift_east_m=MOVED_SHIFT_M))
     assert [r.result_id for r in camera.published(2)] == ["first", "moved"]
+
+
+def test_agreement_from_old_drive_pasts_only_is_no_reverification(camera: Camera) -> None:
+    """A window holds older drive-pasts too; a fit that used none of the new one's boxes proves nothing."""
+    first = camera.truth("first")
+    first_spec = camera.finish(first)
+    camera.published(1)
+    verified_first = camera.status().verified_at_ns
+    stale = _displaced(first, "stale", camera.now_ns(), shift_east_m=AGREEING_SHIFT_M)
+
+    spec = camera.finish(stale, newest_track_end_ns=first_spec.window_end_ns - NS_PER_S)
+
+    status = camera.status()
+    assert status.last_job is not None and status.last_job.job_id == spec.job_id
+    assert status.verified_at_ns == verified_first
+    assert status.current_result_id == "first" and camera.answered() == ["first"]
+    # Nor can such a fit move the camera.
+    camera.finish(
+        _displaced(first, "stale-moved", camera.now_ns(), shift_east_m=MOVED_SHIFT_M),
+        newest_track_end_ns=first_spec.window_end_ns - NS_PER_S,
+    )
+    assert camera.status().current_result_id == "first"
 
 
 def test_result_beyond_tolerance_is_published_as_a_change(camera: Camera) -> None:
