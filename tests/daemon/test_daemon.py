@@ -309,3 +309,60 @@ def test_a_dead_thread_stops_the_daemon_with_its_reason(sim: SimulationResult, t
         assert daemon.wait(timeout_s=5)  # the stop event is set
     finally:
         daemon.stop()
+
+
+def test_kill_9_leaves_a_readable_recording_and_the_restart_keeps_the_count(
+    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path, client_for: object
+) -> None:
+    """No shutdown at all: what was flushed (every storage.flush_interval_s) survives, and a restarted daemon
+    rebuilds its traversal count from the unfinished file."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    config = _config(sim, tmp_path / "state")
+    camera_id = config.cameras[0].camera_id
+    config_path = tmp_path / "rsu.yaml"
+    config_path.write_text(yaml.safe_dump(config.model_dump(mode="json")))
+    recordings = tmp_path / "state" / "recordings"
+    # Everything up to shortly after the first drive-past, sent as fast as the bus takes it.
+    sent = [m for m in messages if m.stamp_ns <= _traversal_ends(sim, camera_id)[0] + 10_000_000_000]
+    station_ids = {sim.station_id}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "daemon.cli", "daemon", "--config", str(config_path)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        client = client_for(config)  # type: ignore[operator]
+        wait_until(lambda: _health(client, config) is not None, timeout_s=30)
+        publishers = {
+            key: client.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            for key in {m.key for m in sent}
+        }
+        for message in sent:
+            publishers[message.key].put(message.payload)
+
+        def flushed() -> int:
+            files = [f.path for f in list_recordings(recordings, config.rsu_id)]
+            window = read_window(files, config.rsu_id, None, station_ids, 0, 2**62)
+            return len(window.detections) + len(window.v2x)
+
+        wait_until(lambda: flushed() == len(sent), timeout_s=30)
+        process.kill()  # SIGKILL: no summary, no footer
+        process.wait(timeout=10)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert flushed() == len(sent)
+
+    daemon = Daemon(config)  # the same state dir: recovery reads the unfinished file
+    try:
+        daemon.start()
+        client = client_for(config)  # type: ignore[operator]
+        status = _status(client, config, camera_id)
+        assert status is not None and status.traversals == 1
+    finally:
+        daemon.stop()
