@@ -120,6 +120,17 @@ def session_config(zenoh_config: ZenohConfig) -> zenoh.Config:
     return config
 
 
+def effective_endpoints(config: zenoh.Config) -> list[str]:
+    """The listen and connect endpoints a session config will use (with a config_file these can be the
+    file's, not rsu.yaml's defaults); zenoh's per-mode form {"peer": [...], ...} resolved for its mode."""
+    mode = json.loads(config.get_json("mode"))
+    endpoints: list[str] = []
+    for path in ("listen/endpoints", "connect/endpoints"):
+        value = json.loads(config.get_json(path))
+        endpoints.extend(value.get(mode, []) if isinstance(value, dict) else value)
+    return endpoints
+
+
 def client_config(
     connect: Sequence[str], mode: Literal["peer", "client"] = "peer", config_file: Path | None = None
 ) -> zenoh.Config:
@@ -259,7 +270,7 @@ class Bus:
         zconf = self._config.zenoh
         try:
             config = session_config(zconf)
-            self._session = session = open_session(config, [*zconf.listen, *zconf.connect])
+            self._session = session = open_session(config, effective_endpoints(config))
             on_sample = self._sample_callback()
             for key in (detections_key(self._rsu_id, "*"), v2x_key("*")):
                 self._subscribers.append(session.declare_subscriber(key, on_sample))
@@ -285,11 +296,10 @@ class Bus:
             self.close()
             raise BusError(f"zenoh: declaring the bus of rsu {self._rsu_id}: {zenoh_message(err)}") from err
         log.info(
-            "bus open: rsu %s, cameras %s, listen %s, connect %s",
+            "bus open: rsu %s, cameras %s, endpoints %s",
             self._rsu_id,
             ", ".join(self._camera_ids),
-            zconf.listen,
-            zconf.connect,
+            ", ".join(effective_endpoints(config)) or "(none)",
         )
 
     def publish_calibration(self, camera_id: str, payload: bytes) -> None:

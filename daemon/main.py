@@ -253,6 +253,15 @@ class Daemon:
             camera_id = camera.camera_id
             current = self.store.load_current(camera_id)
             state = self.store.load_camera_state(camera_id) or CameraState()
+            if current is not None and state.current_result_id != current.result_id:
+                # camera_state.json lost or older than current.json (a crash between the two writes, or a
+                # state dir seeded by hand): the stored result is what the queryable answers, so say so.
+                state = state.model_copy(
+                    update={
+                        "current_result_id": current.result_id,
+                        "verified_at_ns": state.verified_at_ns or current.created_at_ns,
+                    }
+                )
             coverage = coverage_from_config(camera, self._frame) if self._frame is not None else None
             if coverage is None and current is not None:
                 coverage = coverage_from_result(current)

@@ -1,11 +1,12 @@
 """The secure Zenoh setup of deploy/zenoh/ on loopback: mutual TLS plus access control by certificate name.
 
-Certificates come from deploy/make-test-certs.sh (so the documented command is tested too); the Zenoh
-configs are the deployed files, loaded strictly by zenoh and changed only in certificate paths and
-endpoints. Two topologies with the same rules: the daemon as a secure peer everybody connects to
-(secure.json5), and a secure router (secure-router.json5) with the daemon and everybody else as its clients
-(secure-client.json5). Plain sessions stand in for the daemon: a queryable answering the stored calibration
-and subscribers recording what reaches it.
+Certificates come from deploy/make-test-certs.sh (the `certs` fixtures of conftest.py, so the documented
+command is tested too); the Zenoh configs are the deployed files, loaded strictly by zenoh and changed only
+in certificate paths and endpoints. Two topologies with the same rules: the daemon as a secure peer
+everybody connects to (secure.json5), and a secure router (secure-router.json5) with the daemon and
+everybody else as its clients (secure-client.json5). Plain sessions stand in for the daemon (the real one
+is in test_secure_daemon.py): a queryable answering the stored calibration and subscribers recording what
+reaches it.
 
 "Never arrives" is proved without sleeping: after a refused message the sender makes a query that is
 answered; messages on one link are delivered in order, so by the time the reply is back the refused
@@ -15,8 +16,6 @@ message would have been delivered already.
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +27,6 @@ from helpers import free_port, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 ZENOH_DIR = ROOT / "deploy" / "zenoh"
-MAKE_CERTS = ROOT / "deploy" / "make-test-certs.sh"
 
 RSU = "rsu-test"
 CALIBRATION = f"rsu/{RSU}/camera/c1/calibration"
@@ -57,24 +55,6 @@ def _tls(certs: Path, identity: str | None) -> dict[str, Any]:
             path = f"transport/link/tls/{side}_{kind}"
             settings[path] = str(certs / f"{identity}.{suffix}") if identity is not None else None
     return settings
-
-
-@pytest.fixture(scope="module")
-def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """CA + identities made by the documented script (openssl, offline)."""
-    if shutil.which("openssl") is None:
-        pytest.fail("openssl is needed to make the test certificates (apt-get install openssl)")
-    out = tmp_path_factory.mktemp("certs")
-    subprocess.run([str(MAKE_CERTS), str(out)], check=True, capture_output=True, timeout=60)
-    return out
-
-
-@pytest.fixture(scope="module")
-def rogue_certs(tmp_path_factory: pytest.TempPathFactory, certs: Path) -> Path:
-    """The same names signed by ANOTHER CA: an attacker's own 'rsucal-daemon' or 'vehicle-4242'."""
-    out = tmp_path_factory.mktemp("rogue")
-    subprocess.run([str(MAKE_CERTS), str(out)], check=True, capture_output=True, timeout=60)
-    return out
 
 
 @dataclass
