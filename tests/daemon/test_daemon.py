@@ -50,9 +50,13 @@ def _config(sim: SimulationResult, state_dir: Path) -> DaemonConfig:
 def client_for() -> Iterator[object]:
     sessions: list[zenoh.Session] = []
 
-    def open_client(config: DaemonConfig) -> zenoh.Session:
+    def open_client(config: DaemonConfig, connected: bool = True) -> zenoh.Session:
+        """A client of the daemon; `connected`: wait until the daemon answers it, so the daemon's
+        declarations (its subscribers among them) have reached this session and a put is routed."""
         session = zenoh.open(client_config(config.zenoh.listen))
         sessions.append(session)
+        if connected:
+            wait_until(lambda: _health(session, config) is not None, timeout_s=30)
         return session
 
     try:
@@ -215,12 +219,13 @@ def test_bad_input_is_counted_and_good_traffic_carries_on(
     try:
         daemon.start()
         client = client_for(config)  # type: ignore[operator]
-        publisher = client.declare_publisher(key)
+        # BLOCK: under load Zenoh may otherwise drop a put at the sender, which would look like a loss here.
+        publisher = client.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
         for message in good[:11]:
             publisher.put(message.payload)
         publisher.put(good[10].payload)  # duplicate stamp
         for bad_key, payload in bad:
-            client.put(bad_key, payload)
+            client.put(bad_key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         for message in good[11:]:
             publisher.put(message.payload)
         wait_until(
