@@ -7,8 +7,11 @@ Nothing here imports numpy at module level, so `limit_threads()` can run before 
 from __future__ import annotations
 
 import os
+import subprocess
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -16,6 +19,7 @@ if TYPE_CHECKING:
     from pipeline.simulate import SimulationResult
 
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def limit_threads(threads: int = 1) -> None:
@@ -55,3 +59,50 @@ class StageClock:
             out[previous_stage] = out.get(previous_stage, 0.0) + at_s - previous_s
             previous_stage, previous_s = stage, at_s
         return out
+
+
+def tree_state(packages: Sequence[str]) -> str:
+    """The code under test: HEAD and the uncommitted files of `packages` (repository-relative folders)."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", *packages],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.split("\n")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+    changed = sorted(line[3:] for line in dirty if line.strip())
+    return f"{head}" + (f" + uncommitted {', '.join(changed)}" if changed else " (clean)")
+
+
+def load_average() -> str:
+    """The 1, 5 and 15 minute load averages, e.g. "0.52 / 0.80 / 1.10"."""
+    return " / ".join(f"{value:.2f}" for value in os.getloadavg())
+
+
+@dataclass(frozen=True, slots=True)
+class ProcessUsage:
+    """A process's CPU time so far (user + system, s) and resident set now (bytes), from /proc (Linux)."""
+
+    cpu_s: float
+    rss_bytes: int
+
+
+def process_usage(pid: int | None = None) -> ProcessUsage:
+    """CPU seconds and VmRSS of `pid` (default: this process); its threads included, its children not."""
+    proc = Path("/proc") / (str(pid) if pid is not None else "self")
+    # /proc/PID/stat: the command name may contain spaces, so split after its closing parenthesis;
+    # utime and stime are then fields 12 and 13 (in clock ticks).
+    fields = (proc / "stat").read_text().rsplit(")", 1)[1].split()
+    cpu_s = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    rss_bytes = 0
+    for line in (proc / "status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            rss_bytes = int(line.split()[1]) * 1024
+            break
+    return ProcessUsage(cpu_s, rss_bytes)
