@@ -24,7 +24,7 @@ from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, utm_epsg_for
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig, IngestConfig
-from schemas.messages import DetectionFrame, V2xPosition
+from schemas.messages import V2xPosition, check_detection_frame
 
 logger = logging.getLogger(__name__)
 
@@ -72,10 +72,13 @@ class Inbound:
 
 @dataclass(frozen=True, slots=True)
 class DetectionsIn:
-    """An accepted detection frame with its raw payload (logged as received)."""
+    """An accepted detection frame: its raw payload (logged as received), stamp and box count. The frame
+    itself is not built here (schemas.messages.check_detection_frame): the calibration job decodes the
+    recording, and the bus path is ~1.4x faster without 30 Box models per frame."""
 
     camera_id: str
-    frame: DetectionFrame
+    stamp_ns: int
+    boxes: int
     received_ns: int
     payload: bytes
 
@@ -315,30 +318,30 @@ class Decoder:
         if not self._fits(DETECTIONS, inbound):
             return None
         try:
-            frame = DetectionFrame.model_validate_json(inbound.payload, strict=True)
+            frame_camera_id, stamp_ns, boxes = check_detection_frame(inbound.payload)
         except ValidationError as err:
             self._reject_schema(DETECTIONS, key, err)
             return None
         except (UnicodeDecodeError, ValueError) as err:
             self._reject(DETECTIONS, "json", f"{key}: (root): {err}", "(root)")
             return None
-        if frame.camera_id != camera_id:
+        if frame_camera_id != camera_id:
             self._reject(
                 DETECTIONS,
                 "camera_mismatch",
-                f"{key}: camera_id = {frame.camera_id!r} does not match the key's camera {camera_id!r}",
+                f"{key}: camera_id = {frame_camera_id!r} does not match the key's camera {camera_id!r}",
                 "camera_id",
             )
             return None
-        if not self._stamp_ok(DETECTIONS, key, frame.stamp_ns, inbound.received_ns):
+        if not self._stamp_ok(DETECTIONS, key, stamp_ns, inbound.received_ns):
             return None
         last_ns = self._last_detection_ns.get(camera_id)
-        if last_ns is not None and frame.stamp_ns <= last_ns:
-            self._reject_order(DETECTIONS, key, f"camera {camera_id!r}", frame.stamp_ns, last_ns)
+        if last_ns is not None and stamp_ns <= last_ns:
+            self._reject_order(DETECTIONS, key, f"camera {camera_id!r}", stamp_ns, last_ns)
             return None
-        self._last_detection_ns[camera_id] = frame.stamp_ns
+        self._last_detection_ns[camera_id] = stamp_ns
         self._counters.add(DETECTIONS_ACCEPTED)
-        return DetectionsIn(camera_id, frame, inbound.received_ns, inbound.payload)
+        return DetectionsIn(camera_id, stamp_ns, boxes, inbound.received_ns, inbound.payload)
 
     # ------------------------------------------------------------------------------------------- V2X
 

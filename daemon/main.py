@@ -71,6 +71,8 @@ WINDOW_FILE_MARGIN_NS = 60_000_000_000
 # Positions projected per pyproj call when replaying recordings (one call per message would dominate).
 REPLAY_BATCH = 10_000
 PRUNE_INTERVAL_S = 5.0
+# Inbox items handled between two timer checks when a backlog is waiting.
+INGEST_BATCH = 256
 # A trigger query waits this long (wall) for the ingest thread to start its job, then answers "busy".
 TRIGGER_TIMEOUT_S = 2.0
 
@@ -130,8 +132,11 @@ class Daemon:
         self._config_hash = config_hash(config)
         self._stop = threading.Event()
         self._inbox: queue.SimpleQueue[Inbound | Callable[[], None]] = queue.SimpleQueue()
+        # Inbox accounting, shared by Zenoh's callback threads (add) and the ingest thread (remove).
+        self._inbox_lock = threading.Lock()
+        self._inbox_items = 0
+        self._inbox_bytes = 0
         self._dropped = 0
-        self._dropped_lock = threading.Lock()
 
         self.counters = Counters()
         self.rejects = RejectLog(self.counters, self.config.ingest.warn_interval_s, self.clock)
@@ -152,6 +157,7 @@ class Daemon:
         self._tracker_views: dict[str, _TrackerView] = {}
         self._running: dict[str, str] = {}  # camera_id -> job_id
         self._job_started_ns: dict[str, int] = {}
+        self._pending_window_start_ns: dict[str, int] = {}  # jobs not finished: their files must stay
         self._job_counts: dict[str, dict[str, int]] = {}
         self._finished: queue.SimpleQueue[tuple[JobSpec, Future[JobOutcome]]] = queue.SimpleQueue()
 
@@ -327,11 +333,17 @@ class Daemon:
     # ------------------------------------------------------------------------------------------ bus side
 
     def _on_inbound(self, key: str, payload: bytes, received_ns: int) -> None:
-        """Zenoh's threads: enqueue only. A full inbox drops the newest message and counts it."""
-        if self._inbox.qsize() >= self.config.ingest.queue_size:
-            with self._dropped_lock:
+        """Zenoh's threads: enqueue only. A full inbox (messages or bytes) drops the newest and counts it."""
+        size = len(payload)
+        with self._inbox_lock:
+            if (
+                self._inbox_items >= self.config.ingest.queue_size
+                or self._inbox_bytes + size > self.config.ingest.queue_bytes
+            ):
                 self._dropped += 1
-            return
+                return
+            self._inbox_items += 1
+            self._inbox_bytes += size
         self._inbox.put(Inbound(key, payload, received_ns))
 
     # ------------------------------------------------------------------------------------------ ingest thread
@@ -341,11 +353,12 @@ class Daemon:
         try:
             while not self._stop.is_set():
                 try:
-                    item = self._inbox.get(timeout=TICK_S)
+                    self._handle(self._inbox.get(timeout=TICK_S))
+                    # Then whatever else is waiting, without blocking: one timer check per batch.
+                    for _ in range(INGEST_BATCH):
+                        self._handle(self._inbox.get_nowait())
                 except queue.Empty:
-                    item = None
-                if item is not None:
-                    self._handle(item)
+                    pass
                 now = time.monotonic()
                 if now >= next_tick:
                     next_tick = now + TICK_S
@@ -364,12 +377,15 @@ class Daemon:
         if not isinstance(item, Inbound):
             item()  # a control action posted by another thread, run where the state lives
             return
+        with self._inbox_lock:
+            self._inbox_items -= 1
+            self._inbox_bytes -= len(item.payload)
         decoded = self.decoder.decode(item)
         if decoded is None:
             return
         if isinstance(decoded, DetectionsIn):
             self.recorder.write_detections(
-                decoded.camera_id, decoded.frame.stamp_ns, decoded.received_ns, decoded.payload
+                decoded.camera_id, decoded.stamp_ns, decoded.received_ns, decoded.payload
             )
             self._camera_detections[decoded.camera_id] += 1
             return
@@ -408,8 +424,10 @@ class Daemon:
         if time.monotonic() < self._next_prune:
             return
         self._next_prune = time.monotonic() + PRUNE_INTERVAL_S
+        with self._lock:
+            pending = list(self._pending_window_start_ns.values())
         oldest_ns = min(
-            (t.snapshot().window_start_ns or now_ns for t in self.trackers.values()),
+            [*(t.snapshot().window_start_ns or now_ns for t in self.trackers.values()), *pending],
             default=now_ns,
         )
         pruned = self.recorder.prune(keep_after_ns=oldest_ns - WINDOW_FILE_MARGIN_NS)
@@ -477,6 +495,7 @@ class Daemon:
         with self._lock:
             self._running[camera_id] = job_id
             self._job_started_ns[camera_id] = now_ns
+            self._pending_window_start_ns[camera_id] = window.start_ns
             self._job_counts[camera_id]["jobs"] += 1
         future = self._runner.submit(spec)
         future.add_done_callback(lambda done, spec=spec: self._finished.put((spec, done)))  # type: ignore[misc]
@@ -596,6 +615,7 @@ class Daemon:
         with self._lock:
             self._camera_state[camera_id] = new_state
             self._running.pop(camera_id, None)
+            self._pending_window_start_ns.pop(camera_id, None)
             self._job_counts[camera_id][kind] += 1
             if publish is not None and result is not None:
                 self._current[camera_id] = result
@@ -720,8 +740,12 @@ class Daemon:
         """What `rsu/{rsu}/health` answers."""
         now_ns = self.clock.now_ns()
         counters = self.counters.snapshot()
-        with self._dropped_lock:
+        with self._inbox_lock:
             counters["inbox.dropped"] = self._dropped
+            inbox_depth = self._inbox_items
+        counters["recordings.messages_written"] = self.recorder.messages_written
+        counters["recordings.messages_dropped"] = self.recorder.messages_dropped
+        counters["recordings.files_written"] = self.recorder.files_written
         files = list_recordings(self.recordings_dir, self.config.rsu_id)
         try:
             free_bytes = shutil.disk_usage(self.state_dir).free
@@ -736,7 +760,7 @@ class Daemon:
             uptime_s=max(0.0, (now_ns - self.started_at_ns) / 1e9),
             cameras=[camera.camera_id for camera in self.config.cameras],
             counters=counters,
-            inbox_depth=self._inbox.qsize(),
+            inbox_depth=inbox_depth,
             jobs_running=jobs_running,
             disk=DiskUsage(
                 state_dir=str(self.state_dir),

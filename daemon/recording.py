@@ -1072,6 +1072,7 @@ class RotatingRecorder:
         self._flush_ns = int(storage.flush_interval_s * 1e9)
         self._writer: RecordingWriter | None = None
         self._file_start_ns = 0
+        self._file_opened_ns = 0  # our clock when the open file was created
         self._last_flush_ns = 0
         self._dirty = False  # messages written since the last flush
         self._closed = False
@@ -1111,7 +1112,9 @@ class RotatingRecorder:
         if writer is None:
             return
         now_ns = self._clock.now_ns()
-        if now_ns - self._file_start_ns >= self._rotate_ns:
+        # Measured from when the file was opened, not from its first receive time: during an inbox backlog
+        # the messages written are older than now, and a file started by one of them would rotate at once.
+        if now_ns - self._file_opened_ns >= self._rotate_ns:
             self._finish_current()
         elif self._dirty and now_ns - self._last_flush_ns >= self._flush_ns:
             self._flush(writer, now_ns)
@@ -1241,6 +1244,7 @@ class RotatingRecorder:
             return None
         self._writer = writer
         self._file_start_ns = received_ns
+        self._file_opened_ns = self._clock.now_ns()
         self._last_flush_ns = self._clock.now_ns()
         self._dirty = False
         self.files_written += 1

