@@ -15,6 +15,7 @@ import functools
 import io
 import json
 import logging
+import mmap
 import os
 import re
 import struct
@@ -81,6 +82,9 @@ _FOOTER = struct.Struct("<BQQQI")  # head, summary_start, summary_offset_start, 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED_BYTES = _MESSAGE_HEAD.size - _RECORD_HEAD.size
 _CHUNK_TIMES = struct.Struct("<QQ")  # a chunk record body opens with message_start_time, message_end_time
+_CHUNK_OPCODE = bytes([Opcode.CHUNK])
+_KNOWN_OPCODES = frozenset(range(0x01, 0x10))  # MCAP v0: header 0x01 ... data end 0x0f
+_LOST_HEADER = Header(profile="", library="")  # stands in for a damaged header record
 _MAX_U64 = 2**64 - 1
 
 # What a damaged chunk can raise inside mcap's parser: bad lengths (struct.error, EndOfFile), CRC mismatch
@@ -569,6 +573,29 @@ def _verified_chunk_offsets(stream: IO[bytes], size: int) -> list[int]:
     return sorted(offset for offset in set(offsets) if len(MCAP_MAGIC) < offset < summary_start)
 
 
+def _find_intact_chunk(stream: IO[bytes], size: int, start: int) -> int | None:
+    """Offset of the first record at or after `start` that is a chunk whose CRC proves it intact, or None.
+
+    Resynchronises after a corrupt record length or header when no verified summary lists the chunks (a
+    crashed, unfinished recording): only a chunk opcode whose length fits the file and whose body
+    decompresses to its recorded CRC is trusted, so a stray 0x06 byte in other data is never taken."""
+    with mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as view:
+        at = view.find(_CHUNK_OPCODE, start)
+        while at != -1 and at + _RECORD_HEAD.size <= size:
+            _, length = _RECORD_HEAD.unpack_from(view, at)
+            end = at + _RECORD_HEAD.size + length
+            if _CHUNK_TIMES.size <= length and end <= size:
+                try:
+                    chunk = Chunk.read(_body_stream(view[at + _RECORD_HEAD.size : end]))
+                    if chunk.uncompressed_crc != 0 and chunk.uncompressed_size <= MAX_CHUNK_BYTES:
+                        breakup_chunk(chunk, validate_crc=True)
+                        return at
+                except _CHUNK_ERRORS:
+                    pass
+            at = view.find(_CHUNK_OPCODE, at + 1)
+    return None
+
+
 def _scan_messages(
     stream: IO[bytes], size: int, scan: _Scan, path: Path, log_range: tuple[int, int] | None = None
 ) -> Iterator[Message]:
@@ -585,6 +612,11 @@ def _scan_messages(
         raise RecordingError(f"{path}: not an MCAP file (bad magic bytes)")
     chunk_offsets = _verified_chunk_offsets(stream, size)
     offset = len(MCAP_MAGIC)
+    # Without a verified summary a corrupt length is only noticed a record later (an unknown opcode, or a
+    # length past the end): resynchronise from just after the record that sent us there, but never before
+    # the end of the last chunk already read (no message twice).
+    previous_offset = offset
+    read_until = offset
     stream.seek(offset)
     while True:
         head = stream.read(_RECORD_HEAD.size)
@@ -596,13 +628,19 @@ def _scan_messages(
         following = bisect.bisect_right(chunk_offsets, offset)
         next_chunk = chunk_offsets[following] if following < len(chunk_offsets) else None
         # Records never straddle a chunk start, so a record that does has a corrupt length.
-        if end > size or (next_chunk is not None and end > next_chunk):
-            if scan.header is not None and next_chunk is not None:
+        is_garbage = not chunk_offsets and scan.header is not None and opcode not in _KNOWN_OPCODES
+        if end > size or (next_chunk is not None and end > next_chunk) or is_garbage:
+            resume, which = next_chunk, "indexed"
+            if resume is None:
+                search_from = max(min(offset, previous_offset + 1), read_until)
+                resume, which = _find_intact_chunk(stream, size, search_from), "intact"
+            if resume is not None:
                 scan.problems.append(
                     f"record at byte {offset} (opcode {opcode:#04x}) has a corrupt length ({length}); "
-                    f"resumed at the next indexed chunk, byte {next_chunk}"
+                    f"resumed at the next {which} chunk, byte {resume}"
                 )
-                offset = next_chunk
+                scan.header = scan.header or _LOST_HEADER
+                offset = resume
                 stream.seek(offset)
                 continue
             scan.problems.append(
@@ -625,12 +663,26 @@ def _scan_messages(
             stream.seek(offset + _RECORD_HEAD.size)
         body = stream.read(length)
         if scan.header is None:
+            problem = None
             if opcode != Opcode.HEADER:
-                raise RecordingError(f"{path}: header unreadable (first record has opcode {opcode:#04x})")
-            try:
-                scan.header = Header.read(_body_stream(body))
-            except _CHUNK_ERRORS as err:
-                raise RecordingError(f"{path}: header unreadable ({err})") from err
+                problem = f"first record has opcode {opcode:#04x}"
+            else:
+                try:
+                    scan.header = Header.read(_body_stream(body))
+                except _CHUNK_ERRORS as err:
+                    problem = str(err)
+            if problem is not None:
+                # The header holds nothing the messages need: resume at the first chunk that is intact.
+                resume = chunk_offsets[0] if chunk_offsets else _find_intact_chunk(stream, size, end)
+                if resume is None:
+                    raise RecordingError(f"{path}: header unreadable ({problem})")
+                scan.problems.append(
+                    f"header unreadable ({problem}); resumed at the first intact chunk, byte {resume}"
+                )
+                scan.header = _LOST_HEADER
+                offset = resume
+                stream.seek(offset)
+                continue
         elif opcode == Opcode.CHUNK:
             try:
                 chunk = Chunk.read(_body_stream(body))
@@ -641,6 +693,8 @@ def _scan_messages(
             except _CHUNK_ERRORS as err:
                 scan.problems.append(f"chunk at byte {offset} unreadable, its messages are lost: {err}")
                 records = []
+            if records:
+                read_until = end
             for record in records:
                 if isinstance(record, Message):
                     scan.recovered += 1
@@ -662,10 +716,16 @@ def _scan_messages(
             except _CHUNK_ERRORS as err:
                 scan.problems.append(f"record at byte {offset} (opcode {opcode:#04x}) unreadable: {err}")
         elif opcode == Opcode.FOOTER:
-            scan.complete = True
-            return
+            # Only the last record (before the closing magic) is the footer; a footer opcode anywhere else
+            # is a flipped byte, and taking it as the end would silently drop every later chunk.
+            if end >= size - len(MCAP_MAGIC):
+                scan.complete = True
+                return
+            scan.problems.append(
+                f"record at byte {offset} has a footer's opcode but is not at the end of the file; skipped"
+            )
         # Schemas, indexes, statistics, attachments, metadata: not needed to recover the messages.
-        offset = end
+        previous_offset, offset = offset, end
 
 
 def _iter_file(

@@ -15,6 +15,7 @@ from typing import cast
 
 import numpy as np
 from pyproj import CRS, Proj, Transformer
+from pyproj.exceptions import CRSError
 
 from pipeline.arrays import FloatArray, Points3, PoseArray, Stamps
 from pipeline.errors import InputError
@@ -42,7 +43,10 @@ class UtmFrame:
     _proj: Proj = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        parsed = CRS.from_user_input(self.crs)
+        try:
+            parsed = CRS.from_user_input(self.crs)
+        except CRSError as err:
+            raise InputError("crs", f"crs = {self.crs!r} is not a known CRS") from err
         if parsed.utm_zone is None:
             raise InputError("crs", f"crs = {self.crs!r} is not a UTM zone")
         object.__setattr__(self, "_to_utm", Transformer.from_crs("EPSG:4326", parsed, always_xy=True))

@@ -20,6 +20,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from pipeline.errors import InputError
+from pipeline.frames import UtmFrame
 from schemas.common import (
     STAMP_NS_MAX,
     STAMP_NS_MIN,
@@ -46,6 +47,13 @@ _YamlDumper: Any = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 # A 15-minute toolbox recording is ~10 MB (9000 frames x 30 boxes); 256 MiB leaves ample room for long
 # recordings while refusing a file that would exhaust memory once parsed.
 MAX_FILE_BYTES = 256 * 1024 * 1024
+
+# No camera, vehicle, config or toolbox file nests deeper, and deeper is dangerous: libyaml's composer
+# recurses in C (a segfault at ~25,000 levels) and json.dumps in decode_mapping at ~1,000.
+MAX_YAML_DEPTH = 64
+# Aliases can make a few hundred bytes expand into 10^8 values once decode_mapping serialises them
+# ("billion laughs"); real camera.yaml / vehicle.yaml / rsu.yaml documents have under 2,000.
+MAX_MODEL_VALUES = 100_000
 
 DETECTION_FIELDS = ("cx", "cy", "w", "h", "class_id")
 POSE_FIELDS = ("x", "y", "z", "yaw", "pitch", "roll")
@@ -91,8 +99,23 @@ def _describe_yaml_error(err: yaml.YAMLError) -> str:
     return " ".join(str(err).split())
 
 
+def _check_depth(path: Path, text: str | bytes) -> None:
+    """Refuse nesting beyond MAX_YAML_DEPTH, on the event stream (no recursion) before anything is built."""
+    depth = 0
+    for event in yaml.parse(text, Loader=_YamlLoaderBase):
+        if isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                mark = event.start_mark
+                where = "" if mark is None else f"line {mark.line + 1}, column {mark.column + 1}: "
+                raise InputError(str(path), f"(yaml): {where}nested deeper than {MAX_YAML_DEPTH} levels")
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
+
+
 def _parse_yaml(path: Path, text: str | bytes) -> Any:
     try:
+        _check_depth(path, text)
         return yaml.load(text, Loader=_StrictYamlLoader)
     except yaml.YAMLError as err:
         raise InputError(str(path), f"(yaml): {_describe_yaml_error(err)}") from err
@@ -250,12 +273,30 @@ def _sorted_stamps(path: Path, data: dict[Any, Any]) -> list[tuple[int, Any, Any
     return entries
 
 
+def _check_size(path: Path, data: Any) -> None:
+    """Refuse documents of more than MAX_MODEL_VALUES values with aliases expanded (and cyclic ones)."""
+    pending, seen = [data], 0
+    while pending:
+        node = pending.pop()
+        seen += 1
+        if seen > MAX_MODEL_VALUES:
+            raise InputError(
+                str(path), f"(yaml): more than {MAX_MODEL_VALUES} values once aliases (*name) are expanded"
+            )
+        if isinstance(node, dict):
+            pending.extend(node.keys())
+            pending.extend(node.values())
+        elif isinstance(node, list):
+            pending.extend(node)
+
+
 def _load_model_yaml(path: Path, model: type[M]) -> M:
     data = _parse_yaml(path, _read_bytes(path))
     if not isinstance(data, dict):
         raise InputError(
             str(path), f"(root): expected a mapping of {model.__name__} fields, got {type(data).__name__}"
         )
+    _check_size(path, data)
     try:
         return decode_mapping(model, data)
     except ValidationError as err:
@@ -273,7 +314,13 @@ def _load_model_json(path: Path, model: type[M]) -> M:
 
 def load_daemon_config(path: Path) -> DaemonConfig:
     """rsu.yaml of `rsucal daemon`; relative paths in it (state_dir, zenoh.config_file) stay as written."""
-    return _load_model_yaml(Path(path), DaemonConfig)
+    config = _load_model_yaml(Path(path), DaemonConfig)
+    if config.crs is not None:
+        try:
+            UtmFrame(config.crs)  # the schema checks the form only; the daemon needs a UTM zone
+        except InputError as err:
+            raise InputError(str(path), err.detail) from err
+    return config
 
 
 def load_intrinsics(path: Path) -> CameraIntrinsics:

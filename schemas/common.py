@@ -109,10 +109,17 @@ def decode_mapping(model: type[M], data: Any) -> M:
     return decode_json(model, raw)
 
 
+def _path_part(part: str | int) -> str:
+    """A key as written, unless it would vanish, break the line or read as a path or another field: repr()."""
+    text = str(part)
+    plain = bool(text) and text.isprintable() and text.strip() == text and not any(c in text for c in ".:;")
+    return text if plain else repr(text)
+
+
 def describe_validation_error(err: ValidationError) -> str:
     """One line per problem, each starting with the dotted field path: 'boxes.0.x1: ...'."""
     lines = []
     for item in err.errors(include_url=False):
-        where = ".".join(str(part) for part in item["loc"]) or "(root)"
+        where = ".".join(_path_part(part) for part in item["loc"]) or "(root)"
         lines.append(f"{where}: {item['msg']}")
     return "; ".join(lines)
