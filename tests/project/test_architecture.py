@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 OUR_PACKAGES = {"schemas", "pipeline", "daemon", "tests", "bench"}
 BUS_AND_RECORDING = ("zenoh", "mcap")
 
@@ -63,3 +63,11 @@ def test_pipeline_imports_neither_daemon_nor_the_bus() -> None:
     for path in sorted((ROOT / "pipeline").glob("*.py")):
         bad = _imported_top_levels(path) & {"daemon", "tests", "bench", *BUS_AND_RECORDING}
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
+
+
+def test_no_test_directory_shadows_a_package_in_spawned_processes() -> None:
+    """Job workers are spawned: a fresh interpreter imports `daemon` from sys.path. pytest (prepend mode)
+    puts each test file's directory on sys.path; were `tests/` itself among them, tests/daemon (no
+    __init__.py) would be found as a namespace package `daemon` before the installed one. So no test file
+    lives directly in tests/."""
+    assert not sorted((ROOT / "tests").glob("test_*.py"))
