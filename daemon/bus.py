@@ -22,6 +22,7 @@ from typing import Any, Literal
 import zenoh
 
 from daemon.clock import Clock
+from daemon.recording import detections_key
 from pipeline.errors import RsucalError
 from schemas.config import DaemonConfig, ZenohConfig
 
@@ -48,14 +49,6 @@ class BusError(RsucalError):
 
 
 # ------------------------------------------------------------------------------------------------ keys
-
-
-def detections_key(rsu_id: str, camera_id: str) -> str:
-    return f"rsu/{rsu_id}/camera/{camera_id}/detections"
-
-
-def v2x_key(station_id: int | str) -> str:
-    return f"v2x/cam/{station_id}"
 
 
 def calibration_key(rsu_id: str, camera_id: str) -> str:
@@ -272,7 +265,8 @@ class Bus:
             config = session_config(zconf)
             self._session = session = open_session(config, effective_endpoints(config))
             on_sample = self._sample_callback()
-            for key in (detections_key(self._rsu_id, "*"), v2x_key("*")):
+            # Input keys are those of the recordings (daemon.recording), with wildcards.
+            for key in (detections_key(self._rsu_id, "*"), "v2x/cam/*"):
                 self._subscribers.append(session.declare_subscriber(key, on_sample))
             answers: dict[Kind, tuple[str, Callable[[zenoh.Query], None]]] = {
                 "calibration": (calibration_key(self._rsu_id, "*"), self._answer_calibration),
