@@ -31,19 +31,18 @@ from daemon.bus import (
     QueryReplies,
     calibration_key,
     client_config,
-    detections_key,
     query,
     query_replies,
     split_replies,
     start_query,
     status_key,
     trigger_key,
-    v2x_key,
 )
 from daemon.clock import ScaledClock
 from daemon.demo import BusMessage, demo_config, publish_messages, simulation_messages
 from daemon.jobs import JobOutcome, JobSpec, new_job_id
 from daemon.main import Daemon, DaemonEvent
+from daemon.recording import detections_key, v2x_key
 from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
 from pipeline.metrics import result_from_ground_truth

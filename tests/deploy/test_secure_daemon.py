@@ -34,11 +34,11 @@ from daemon.bus import (
     calibration_key,
     health_key,
     query_replies,
-    v2x_key,
 )
 from daemon.demo import demo_config
 from daemon.ingest import UNKNOWN_KEY_REJECTED, V2X_ACCEPTED, V2X_RECEIVED
 from daemon.main import Daemon
+from daemon.recording import v2x_key
 from daemon.state import StateStore
 from daemon.status import fetch_status, status_main
 from pipeline.metrics import result_from_ground_truth
