@@ -25,7 +25,6 @@ import json
 import math
 import re
 import statistics
-import subprocess
 import sys
 import time
 import traceback
@@ -36,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bench.common import inputs_for, limit_threads
+from bench.common import inputs_for, limit_threads, tree_state
 
 FALSE_ACCEPT_POSITION_M = 0.5
 FALSE_ACCEPT_ROTATION_DEG = 0.5
@@ -591,26 +590,6 @@ def _task_weight(preset: str) -> float:
     return len(config.cameras) * (config.traffic.count + 50) * (config.duration_s or 300.0)
 
 
-def _tree_state() -> str:
-    """The code under test: HEAD and the uncommitted files of the packages the benchmark runs."""
-    root = Path(__file__).resolve().parents[1]
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "pipeline", "schemas"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.split("\n")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown (not a git checkout)"
-    changed = sorted(line[3:] for line in dirty if line.strip())
-    return f"{head}" + (f" + uncommitted {', '.join(changed)}" if changed else " (clean)")
-
-
 def _run_all(names: Sequence[str], seeds: int, jobs: int) -> list[Run]:
     tasks = sorted(((p, s) for p in names for s in range(seeds)), key=lambda t: -_task_weight(t[0]))
     runs: list[Run] = []
@@ -668,7 +647,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         unknown = [p for p in names if p not in PRESETS]
         if unknown:
             parser.error(f"unknown preset(s) {', '.join(unknown)}; choose from {', '.join(PRESETS)}")
-        code = _tree_state()  # now: the workers import the code as it is when they start
+        code = tree_state(
+            ["pipeline", "schemas"]
+        )  # now: the workers import the code as it is when they start
         runs = _run_all(names, args.seeds, args.jobs)
         header = (
             f"rsucal accuracy benchmark: {len(names)} presets x seeds 0..{args.seeds - 1}, every camera, "

@@ -699,9 +699,23 @@ def _cpu_pct(a: Sample, b: Sample) -> float:
 # -------------------------------------------------------------------------------------------- sustained
 
 
-def run_sustained(seconds: float) -> dict[str, Any]:
-    """The CLI daemon fed the mix in real time by the publisher process; every message must be accepted."""
-    site = build_site(MIX, THROUGHPUT_PATTERN)
+@dataclass
+class CliRig:
+    """`rsucal daemon` in its own process, the publisher process and a monitoring client, on one port."""
+
+    directory: Path
+    daemon: DaemonProcess
+    publisher: PublisherProcess
+    monitor: Monitor
+    exit_code: int | None = None  # None: never stopped cleanly (killed)
+    stop_s: float = float("nan")
+    mcap: tuple[int, int, int] = (0, 0, 0)  # files, bytes, messages, read after the daemon stopped
+    problems: list[str] = field(default_factory=list)
+
+
+@contextlib.contextmanager
+def cli_rig(site: Site) -> Iterator[CliRig]:
+    """Start the daemon and the publisher; on exit stop both (SIGTERM timed) and read the MCAP summary."""
     with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
         directory = Path(tmp)
         port = free_port()
@@ -710,26 +724,37 @@ def run_sustained(seconds: float) -> dict[str, Any]:
         daemon = DaemonProcess(config, directory)
         publisher = PublisherProcess(site, endpoint)
         with client_session(endpoint) as client:
+            rig: CliRig | None = None
             try:
                 daemon.start(client)
-                monitor = Monitor(client, daemon.pid)
+                rig = CliRig(directory, daemon, publisher, Monitor(client, daemon.pid))
                 publisher.start()
-                before = monitor.sample()
-                start_ns = time.time_ns() + 500_000_000
-                publisher.send(
-                    {"kind": "realtime", "start_ns": start_ns, "end_ns": start_ns + int(seconds * 1e9)}
-                )
-                samples = [before]
-                while not publisher.poll(1.0):
-                    samples.append(monitor.sample())
-                report = publisher.report()
-                after, drained = monitor.wait_drained(before.accepted + report["published"], 10.0)
-                samples.append(after)
+                yield rig
             finally:
                 publisher.close()
                 code, stop_s = daemon.stop()
-        files, mcap_bytes, mcap_messages = mcap_summary(directory / "state" / "recordings")
-        problems = daemon.problems()
+                if rig is not None:
+                    rig.exit_code, rig.stop_s = code, stop_s
+        if rig is not None:
+            rig.mcap = mcap_summary(directory / "state" / "recordings")
+            rig.problems = daemon.problems()
+
+
+def run_sustained(seconds: float) -> dict[str, Any]:
+    """The CLI daemon fed the mix in real time by the publisher process; every message must be accepted."""
+    with cli_rig(build_site(MIX, THROUGHPUT_PATTERN)) as rig:
+        monitor, publisher = rig.monitor, rig.publisher
+        before = monitor.sample()
+        start_ns = time.time_ns() + 500_000_000
+        publisher.send({"kind": "realtime", "start_ns": start_ns, "end_ns": start_ns + int(seconds * 1e9)})
+        samples = [before]
+        while not publisher.poll(1.0):
+            samples.append(monitor.sample())
+        report = publisher.report()
+        after, drained = monitor.wait_drained(before.accepted + report["published"], 10.0)
+        samples.append(after)
+    files, mcap_bytes, mcap_messages = rig.mcap
+    code, stop_s, problems = rig.exit_code, rig.stop_s, rig.problems
     published = report["published"]
     accepted = after.accepted - before.accepted
     duration_s = report["seconds"]
@@ -818,41 +843,26 @@ def print_sustained(r: dict[str, Any]) -> None:
 
 def run_ceiling(rates: Sequence[float], step_s: float, py_spy_rate: float | None = None) -> dict[str, Any]:
     """Steps of increasing rate, the mix time-compressed; then one unpaced step."""
-    site = build_site(MIX, THROUGHPUT_PATTERN)
     steps: list[dict[str, Any]] = []
     py_spy: dict[str, Any] | None = None
-    with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
-        directory = Path(tmp)
-        port = free_port()
-        endpoint = f"tcp/127.0.0.1:{port}"
-        config = site_config(site, directory / "state", port)
-        daemon = DaemonProcess(config, directory)
-        publisher = PublisherProcess(site, endpoint)
-        with client_session(endpoint) as client:
-            try:
-                daemon.start(client)
-                monitor = Monitor(client, daemon.pid)
-                publisher.start()
-                failures = 0
-                plan: list[float | None] = [*rates, None]
-                for rate in plan:
-                    if rate is not None and failures >= FAILED_STEPS_BEFORE_SKIP:
-                        steps.append({"rate": rate, "skipped": True, "passed": False})
-                        continue
-                    spy = None
-                    if rate is not None and py_spy_rate is not None and rate == py_spy_rate:
-                        spy = PySpy.start(daemon.pid, step_s, directory / f"py-spy-{rate:.0f}.txt")
-                    step = _ceiling_step(monitor, publisher, rate, step_s)
-                    if spy is not None:
-                        py_spy = spy.finish()
-                    steps.append(step)
-                    if rate is not None:
-                        failures = 0 if step["passed"] else failures + 1
-            finally:
-                publisher.close()
-                code, stop_s = daemon.stop()
-        files, mcap_bytes, mcap_messages = mcap_summary(directory / "state" / "recordings")
-        problems = daemon.problems()
+    with cli_rig(build_site(MIX, THROUGHPUT_PATTERN)) as rig:
+        failures = 0
+        plan: list[float | None] = [*rates, None]
+        for rate in plan:
+            if rate is not None and failures >= FAILED_STEPS_BEFORE_SKIP:
+                steps.append({"rate": rate, "skipped": True, "passed": False})
+                continue
+            spy = None
+            if rate is not None and py_spy_rate is not None and rate == py_spy_rate:
+                spy = PySpy.start(rig.daemon.pid, step_s, rig.directory / f"py-spy-{rate:.0f}.txt")
+            step = _ceiling_step(rig.monitor, rig.publisher, rate, step_s)
+            if spy is not None:
+                py_spy = spy.finish()
+            steps.append(step)
+            if rate is not None:
+                failures = 0 if step["passed"] else failures + 1
+    files, mcap_bytes, mcap_messages = rig.mcap
+    code, stop_s, problems = rig.exit_code, rig.stop_s, rig.problems
     passing = [s["rate"] for s in steps if s.get("passed")]
     ceiling = max(passing, default=0.0)
     accepted_total = sum(s.get("accepted", 0) for s in steps)
