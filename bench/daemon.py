@@ -50,7 +50,6 @@ import os
 import pstats
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -455,13 +454,6 @@ class PublisherProcess:
 # ------------------------------------------------------------------------------------------- the daemon
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def site_config(
     site: Site,
     state_dir: Path,
@@ -716,9 +708,11 @@ class CliRig:
 @contextlib.contextmanager
 def cli_rig(site: Site) -> Iterator[CliRig]:
     """Start the daemon and the publisher; on exit stop both (SIGTERM timed) and read the MCAP summary."""
+    from daemon.bus import free_loopback_port
+
     with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
         directory = Path(tmp)
-        port = free_port()
+        port = free_loopback_port()
         endpoint = f"tcp/127.0.0.1:{port}"
         config = site_config(site, directory / "state", port)
         daemon = DaemonProcess(config, directory)
@@ -987,7 +981,7 @@ def run_rss(hours: int, rate: float, divisor: int, trace: bool = False) -> dict[
     tracemalloc runs too (slower): Python-allocated bytes per hour and the lines that grew after hour 1."""
     import tracemalloc
 
-    from daemon.bus import query, status_key
+    from daemon.bus import free_loopback_port, query, status_key
     from daemon.clock import ScaledClock
     from daemon.main import Daemon, DaemonEvent
     from schemas.config import JobsConfig, StorageConfig, TriggerConfig
@@ -1008,7 +1002,7 @@ def run_rss(hours: int, rate: float, divisor: int, trace: bool = False) -> dict[
     growth_lines: list[str] = []
     with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
         directory = Path(tmp)
-        port = free_port()
+        port = free_loopback_port()
         endpoint = f"tcp/127.0.0.1:{port}"
         config = site_config(
             site,
@@ -1186,7 +1180,7 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
     """The `long` preset into a Daemon; per job: quiet-period end -> job start -> result on the bus."""
     import zenoh
 
-    from daemon.bus import calibration_key
+    from daemon.bus import calibration_key, free_loopback_port
     from daemon.clock import ScaledClock
     from daemon.demo import demo_config, publish_messages, simulation_messages
     from daemon.main import Daemon, DaemonEvent
@@ -1233,7 +1227,7 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
 
     with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
         directory = Path(tmp)
-        port = free_port()
+        port = free_loopback_port()
         config = demo_config(sim, directory / "state", port)
         config = config.model_copy(
             update={
@@ -1447,6 +1441,7 @@ def print_py_spy(summary: dict[str, Any], what: str = "the threads that were not
 
 def run_profile(rate: float, step_s: float) -> dict[str, Any]:
     """cProfile of a Daemon's ingest thread and its bus callback's cost, then py-spy of `rsucal daemon`."""
+    from daemon.bus import free_loopback_port
     from daemon.main import Daemon
 
     site = build_site(MIX, THROUGHPUT_PATTERN)
@@ -1454,7 +1449,7 @@ def run_profile(rate: float, step_s: float) -> dict[str, Any]:
     callback_ns = [0, 0]  # total, calls
     with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
         directory = Path(tmp)
-        port = free_port()
+        port = free_loopback_port()
         endpoint = f"tcp/127.0.0.1:{port}"
         config = site_config(site, directory / "state", port)
         publisher = PublisherProcess(site, endpoint)
@@ -1505,25 +1500,13 @@ def run_profile(rate: float, step_s: float) -> dict[str, Any]:
 
 
 def _py_spy_run(rate: float, step_s: float, site: Site) -> dict[str, Any] | None:
-    with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
-        directory = Path(tmp)
-        port = free_port()
-        endpoint = f"tcp/127.0.0.1:{port}"
-        daemon = DaemonProcess(site_config(site, directory / "state", port), directory)
-        publisher = PublisherProcess(site, endpoint)
-        with client_session(endpoint) as client:
-            try:
-                daemon.start(client)
-                publisher.start()
-                spies = [
-                    PySpy.start(daemon.pid, step_s, directory / f"py-spy-{gil}.txt", gil)
-                    for gil in (False, True)
-                ]
-                step = _ceiling_step(Monitor(client, daemon.pid), publisher, rate, step_s)
-                summaries = [spy.finish() if spy is not None else None for spy in spies]
-            finally:
-                publisher.close()
-                daemon.stop()
+    with cli_rig(site) as rig:
+        spies = [
+            PySpy.start(rig.daemon.pid, step_s, rig.directory / f"py-spy-{gil}.txt", gil)
+            for gil in (False, True)
+        ]
+        step = _ceiling_step(rig.monitor, rig.publisher, rate, step_s)
+        summaries = [spy.finish() if spy is not None else None for spy in spies]
     summary, gil_summary = summaries
     if summary is not None:
         summary["step"] = step

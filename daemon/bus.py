@@ -12,6 +12,7 @@ import functools
 import json
 import logging
 import re
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -82,6 +83,13 @@ def has_wildcard(key: str) -> bool:
 def zenoh_message(err: BaseException) -> str:
     """Zenoh's error text without the Rust source locations (`at /root/.cargo/...rs:61.`)."""
     return _ZENOH_SOURCE_LOCATION.sub("", str(err)).strip()
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (demo, tests, benchmarks: never a fixed port)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
 
 
 def session_config(zenoh_config: ZenohConfig) -> zenoh.Config:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from daemon.bus import client_config, query
+from daemon.bus import client_config, free_loopback_port, query
 from daemon.clock import ScaledClock
 from daemon.main import Daemon, DaemonEvent
 from daemon.recording import detections_key, v2x_key
@@ -149,7 +149,7 @@ def run_demo(
 
     with tempfile.TemporaryDirectory(prefix="rsucal-demo-") as tmp:
         state = state_dir or Path(tmp) / "state"
-        endpoint_port = port or _free_port()
+        endpoint_port = port or free_loopback_port()
         config = demo_config(sim, state, endpoint_port)
         endpoint = config.zenoh.listen[0]
         out(f"  daemon: peer on {endpoint}, state in {state}")
@@ -184,14 +184,6 @@ def run_demo(
 def _or_inf(value: float | None) -> float:
     """A metric the evaluation could not compute counts as failed."""
     return float("inf") if value is None else value
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _statuses(client: zenoh.Session, config: DaemonConfig) -> dict[str, CalibrationStatus]:
