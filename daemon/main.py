@@ -81,21 +81,13 @@ TRIGGER_TIMEOUT_S = 2.0
 class DaemonEvent:
     """Something an operator watching live wants to see (the demo prints these)."""
 
-    kind: str  # entered | left | discarded | job_started | job_finished | published | verified | refused
+    kind: str  # entered | left | discarded | job_started | published | verified | refused | failed
     camera_id: str
     text: str
     traversals: int = 0
 
 
 EventSink = Callable[[DaemonEvent], None]
-
-
-@dataclass(frozen=True, slots=True)
-class _TrackerView:
-    traversals: int
-    inside: bool
-    learning: bool
-    learning_data: bool  # learning the coverage and some calibration-vehicle data is already in
 
 
 def config_hash(config: DaemonConfig) -> str:
@@ -154,7 +146,6 @@ class Daemon:
         self._current: dict[str, CalibrationResult] = {}
         self._current_json: dict[str, bytes] = {}
         self._camera_state: dict[str, CameraState] = {}
-        self._tracker_views: dict[str, _TrackerView] = {}
         self._running: dict[str, str] = {}  # camera_id -> job_id
         self._job_started_ns: dict[str, int] = {}
         self._pending_window_start_ns: dict[str, int] = {}  # jobs not finished: their files must stay
@@ -165,7 +156,6 @@ class Daemon:
         self._bus: Bus | None = None
         self._threads: list[threading.Thread] = []
         self.started_at_ns = self.clock.now_ns()
-        self._started = False
         self._next_prune = 0.0
         self._failure: str | None = None
 
@@ -199,7 +189,6 @@ class Daemon:
         except BaseException:
             self.stop()
             raise
-        self._started = True
         effective = session_config(self.config.zenoh)
         log.info(
             "rsucal %s on the bus as rsu %s: %d camera(s), zenoh %s, listen %s, connect %s",
@@ -286,7 +275,6 @@ class Daemon:
             if state.used_until_ns is not None:
                 tracker.restore_used_until(state.used_until_ns)
             tracker.tick(now_ns)
-            self._publish_tracker_view(camera_id)
             log.info(
                 "camera %s: %d traversal(s) in the open window after replaying %d V2X message(s)%s",
                 camera_id,
@@ -416,7 +404,6 @@ class Daemon:
                 window = tracker.due(now_ns)
                 if window is not None:
                     self._start_job(camera_id, window, new_job_id(camera_id, now_ns))
-            self._publish_tracker_view(camera_id)
         self._prune(now_ns)
 
     def _prune(self, now_ns: int) -> None:
@@ -443,14 +430,6 @@ class Daemon:
             }.get(event.kind, event.kind)
             log.info("camera %s: %s", event.camera_id, text)
             self._emit(DaemonEvent(event.kind, event.camera_id, text, event.traversals))
-
-    def _publish_tracker_view(self, camera_id: str) -> None:
-        snap = self.trackers[camera_id].snapshot()
-        view = _TrackerView(
-            snap.traversals, snap.inside, snap.learning, snap.learning and snap.learn_data_s > 0
-        )
-        with self._lock:
-            self._tracker_views[camera_id] = view
 
     def _start_job(self, camera_id: str, window: JobWindow, job_id: str) -> bool:
         """Ingest thread: make the window's data readable on disk, then hand the job to a worker; whether it
@@ -640,7 +619,6 @@ class Daemon:
         log.info(
             "camera %s: coverage learned from the calibration; %d positions recounted", camera_id, replayed
         )
-        self._publish_tracker_view(camera_id)
 
     # ------------------------------------------------------------------------------------------ queries
 
@@ -651,19 +629,20 @@ class Daemon:
     def status(self, camera_id: str) -> CalibrationStatus:
         """The camera's status as `.../calibration/status` answers it."""
         with self._lock:
-            view = self._tracker_views.get(camera_id, _TrackerView(0, False, False, False))
             state = self._camera_state.get(camera_id, CameraState())
             running = self._running.get(camera_id)
             started_ns = self._job_started_ns.get(camera_id)
             has_current = camera_id in self._current
             counts = dict(self._job_counts.get(camera_id, {}))
+        # Trackers are owned by the ingest thread; their snapshots are immutable and swapped whole.
+        view = self.trackers[camera_id].snapshot()
         last_job = state.last_job
         if running is not None and started_ns is not None:
             last_job = JobSummary(job_id=running, started_ns=started_ns)
             status_state = "calibrating"
         elif has_current:
             status_state = "calibrated"
-        elif view.traversals > 0 or view.inside or view.learning_data:
+        elif view.traversals > 0 or view.inside or (view.learning and view.learn_data_s > 0):
             status_state = "collecting"
         elif state.last_job is not None and state.last_job.verdict is not None:
             status_state = "refused"
@@ -791,9 +770,6 @@ class Daemon:
     def wait(self, timeout_s: float | None = None) -> bool:
         """Block until stop is requested; True if it was."""
         return self._stop.wait(timeout_s)
-
-    def request_stop(self) -> None:
-        self._stop.set()
 
 
 def run_daemon(config: DaemonConfig) -> int:
