@@ -28,3 +28,12 @@ def test_ci_runs_the_readme_main_job_verbatim() -> None:
     main_job = _readme_commands()[0]
     ci = (ROOT / ".ci" / "run").read_text()
     assert main_job in ci, "the README's first command must appear verbatim in .ci/run"
+
+
+def test_ci_type_checks_every_package_strictly() -> None:
+    """mypy --strict (pyproject's [tool.mypy]) covers the daemon as well as the pipeline and schemas."""
+    ci_lines = (ROOT / ".ci" / "run").read_text().splitlines()
+    mypy_lines = [line.split() for line in ci_lines if line.startswith("mypy ")]
+    assert len(mypy_lines) == 1
+    assert set(mypy_lines[0][1:]) >= {"pipeline", "schemas", "daemon"}
+    assert "strict = true" in (ROOT / "pyproject.toml").read_text()
