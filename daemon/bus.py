@@ -38,6 +38,7 @@ NO_CALIBRATION_YET = "no validated calibration yet"
 # undeclared, unless a handler is stuck; those threads are daemons and are left behind with a warning).
 JOIN_BUDGET_S = 0.3
 _ZENOH_SOURCE_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
+_RUST_DEBUG_MSG = re.compile(r'\w+\(Message \{ msg: "((?:[^"\\]|\\.)*)".*$')
 _WILDCARD = re.compile(r"\*|\$")
 
 OnInbound = Callable[[str, bytes, int], None]
@@ -81,8 +82,13 @@ def has_wildcard(key: str) -> bool:
 
 
 def zenoh_message(err: BaseException) -> str:
-    """Zenoh's error text without the Rust source locations (`at /root/.cargo/...rs:61.`)."""
-    return _ZENOH_SOURCE_LOCATION.sub("", str(err)).strip()
+    """Zenoh's error text without the Rust source locations (`at /root/.cargo/...rs:61.`) or the Debug form
+    of a JSON5 error (`Json5Err(Message { msg: "...", location: ... })` -> its msg)."""
+    text = _ZENOH_SOURCE_LOCATION.sub("", str(err)).strip()
+    debug = _RUST_DEBUG_MSG.search(text)
+    if debug is not None:
+        text = text[: debug.start()] + debug.group(1).replace('\\"', '"')
+    return text
 
 
 def free_loopback_port() -> int:

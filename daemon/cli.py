@@ -8,15 +8,22 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
+import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
 
 from pydantic import ValidationError
 
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig
+
+if TYPE_CHECKING:
+    from schemas.files import GroundTruth
+    from schemas.results import CalibrationResult
 
 # Duplicated from daemon.offline (imported lazily, like every command's dependencies) for --help.
 DEFAULT_YAML_CRS = "EPSG:32632"
@@ -26,7 +33,97 @@ EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_REFUSED = 3
 
+EXIT_INTERRUPTED = 130
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+# Seeds feed numpy's SeedSequence, which takes any non-negative integer; beyond 2^128 they add nothing.
+MAX_SEED = 2**128 - 1
+
 log = logging.getLogger("rsucal")
+
+
+# ----------------------------------------------------------------------------------- argument checking
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error: `rsucal calibrate: error: argument --seed: ... (see --help)`."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _integer(low: int, high: int | None = None, bounds: str | None = None) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        try:
+            value = int(text.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low or (high is not None and value > high):
+            expected = bounds or (f">= {low}" if high is None else f"in [{low}, {high}]")
+            raise argparse.ArgumentTypeError(f"must be {expected}, got {value}")
+        return value
+
+    return parse
+
+
+def _positive_seconds(text: str) -> float:
+    """A finite number > 0 (time-outs, rates)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def _log_level(text: str) -> str:
+    level = text.strip().upper()
+    if level not in LOG_LEVELS:
+        raise argparse.ArgumentTypeError(f"{text!r} is not one of {', '.join(LOG_LEVELS)}")
+    return level
+
+
+_SEED = _integer(0, MAX_SEED, ">= 0 (and below 2**128)")
+
+
+def _output_file(option: str, text: str, suffix: str | None = None) -> Path:
+    """A file to write: its directory must exist (nothing is created silently), it must not be a directory."""
+    path = Path(text)
+    if not text.strip() or path.is_dir() or text.endswith(os.sep):
+        raise InputError(option, f"{text!r} is a directory or empty; expected a file name")
+    if suffix is not None and path.suffix.lower() != suffix:
+        raise InputError(option, f"{text!r} must end with {suffix}")
+    parent = path.parent
+    if not parent.is_dir():
+        raise InputError(option, f"{text!r}: directory {str(parent)!r} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise InputError(option, f"{text!r}: directory {str(parent)!r} is not writable")
+    return path
+
+
+def _output_dir(option: str, text: str) -> Path:
+    """A directory to write into, created if needed (like mkdir -p); an existing file there is refused."""
+    path = Path(text)
+    if not text.strip():
+        raise InputError(option, "empty; expected a directory")
+    if path.exists() and not path.is_dir():
+        raise InputError(option, f"{text!r} exists and is not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(option, f"cannot create {text!r}: {err.strerror or err}") from err
+    if not os.access(path, os.W_OK):
+        raise InputError(option, f"{text!r} is not writable")
+    return path
+
+
+def _check_preset(preset: str, presets: Iterable[str]) -> None:
+    if preset not in presets:
+        raise InputError("--preset", f"unknown preset {preset!r}; choose one of {', '.join(sorted(presets))}")
+
+
+# ------------------------------------------------------------------------------------------- commands
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -34,19 +131,20 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from pipeline.loaders import write_simulation_files
     from pipeline.simulate import PRESETS, simulate
 
-    if args.preset not in PRESETS:
-        raise InputError(
-            "--preset", f"unknown preset {args.preset!r}; choose one of {', '.join(sorted(PRESETS))}"
-        )
+    _check_preset(args.preset, PRESETS)
+    # Every argument is checked before the simulation runs, so nothing is half-written on a bad one.
+    out = _output_dir("--out", args.out)  # first: --preview may name a file inside it
+    preview = _output_file("--preview", args.preview, suffix=".png") if args.preview is not None else None
     result = simulate(args.preset, seed=args.seed)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    mcap_path = write_simulation_mcap(result, out / "recording.mcap")
-    written = [mcap_path, *write_simulation_files(result, out)]
-    if args.preview:
+    try:
+        mcap_path = write_simulation_mcap(result, out / "recording.mcap")
+        written = [mcap_path, *write_simulation_files(result, out)]
+    except OSError as err:
+        raise InputError("--out", f"cannot write into {args.out!r}: {err.strerror or err}") from err
+    if preview is not None:
         from pipeline.preview import write_preview
 
-        written.append(write_preview(result, Path(args.preview)))
+        written.append(write_preview(result, preview))
     frames = sum(len(f) for f in result.detections.values())
     boxes = sum(len(fr.boxes) for f in result.detections.values() for fr in f)
     print(
@@ -64,12 +162,47 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     result = load_calibration_result(Path(args.calib))
     truth = load_ground_truth(Path(args.ground_truth))
+    _check_same_scene(result, truth, args.ground_truth)
     evaluation = evaluate_against_ground_truth(result, truth)
     if args.json:
         print(json.dumps(evaluation.as_dict(), indent=2))
     else:
         print(format_evaluation(evaluation))
     return EXIT_OK
+
+
+# A calibrated camera is within ~40 m of the driven path (pipeline.hypotheses' gate) and the path is in its
+# view, so a truth whose camera is farther than this from the result's cannot be of the same camera.
+SAME_SCENE_MAX_DISTANCE_M = 1000.0
+
+
+def _check_same_scene(result: CalibrationResult, truth: GroundTruth, truth_path: str) -> None:
+    """Refuse to score a result against the truth of another scene (crs, distance, data window)."""
+    import numpy as np
+
+    if result.frame.crs != truth.crs:
+        raise InputError(
+            "--ground-truth",
+            f"{truth_path}: crs {truth.crs} differs from the result's {result.frame.crs}: another scene",
+        )
+    if result.camera_position is not None:
+        distance_m = float(
+            np.linalg.norm(np.subtract(result.camera_position.utm, truth.camera_position_utm)[:2])
+        )
+        if distance_m > SAME_SCENE_MAX_DISTANCE_M:
+            raise InputError(
+                "--ground-truth",
+                f"{truth_path}: its camera is {distance_m / 1000.0:.1f} km from the result's; the truth of "
+                f"another scene or camera (a calibrated camera is within {SAME_SCENE_MAX_DISTANCE_M:g} m)",
+            )
+    start, end = result.provenance.window_start_ns, result.provenance.window_end_ns
+    stamps = [frame.stamp_ns for frame in truth.frames]
+    if start is not None and end is not None and stamps and (max(stamps) < start or min(stamps) > end):
+        raise InputError(
+            "--ground-truth",
+            f"{truth_path}: its frames ({min(stamps)}..{max(stamps)} ns) do not overlap the result's data "
+            f"window ({start}..{end} ns): the truth of another recording",
+        )
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -85,6 +218,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from daemon.workers import track_pool
     from pipeline.calibrate import PipelineParams, calibrate
 
+    out = _output_file("--out", args.out)
     loaded = load_offline_inputs(
         Path(args.camera),
         Path(args.vehicle),
@@ -106,7 +240,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             progress=progress,
             map_fn=map_fn,
         )
-    written = write_result(outcome.result, Path(args.out))
+    written = write_result(outcome.result, out)
     if args.verbose:
         print(format_stage_reports(outcome))
     print(format_summary(outcome.result, written))
@@ -115,11 +249,13 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_daemon(args: argparse.Namespace) -> int:
     from daemon.main import run_daemon
+    from daemon.state import prepare_state_dir
     from pipeline.loaders import load_daemon_config
 
     config_path = Path(args.config)
     config = load_daemon_config(config_path)
     config = _resolve_relative_paths(config, config_path.parent)
+    prepare_state_dir(config.storage.state_dir)
     if args.log_level is None:
         logging.getLogger().setLevel(config.log_level)
     return run_daemon(config)
@@ -146,26 +282,32 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from daemon.demo import run_demo
+    from pipeline.simulate import PRESETS
 
+    _check_preset(args.preset, PRESETS)
     return run_demo(preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rsucal", description="Automatic roadside camera calibration.")
+    from daemon import __version__
+
+    parser = _Parser(prog="rsucal", description="Automatic roadside camera calibration.")
+    parser.add_argument("--version", action="version", version=f"rsucal {__version__}")
     parser.add_argument(
         "--log-level",
         default=None,
-        help="logging level (default WARNING; the daemon: log_level of its config)",
+        type=_log_level,
+        help=f"logging level: {', '.join(LOG_LEVELS)} (default WARNING; the daemon: log_level of its config)",
     )
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     sim = sub.add_parser(
         "simulate", help="generate a seeded RSU scenario: MCAP, toolbox YAML pair, ground truth"
     )
     sim.add_argument("--preset", default="sil-west", help="scenario preset (default sil-west)")
-    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    sim.add_argument("--out", required=True, help="output directory")
-    sim.add_argument("--preview", help="write a PNG of one busy frame here")
+    sim.add_argument("--seed", type=_SEED, default=0, help="random seed, >= 0 (default 0)")
+    sim.add_argument("--out", required=True, help="output directory (created if needed)")
+    sim.add_argument("--preview", help="write a PNG of one busy frame to this .png file")
     sim.set_defaults(func=_cmd_simulate)
 
     ev = sub.add_parser(
@@ -203,17 +345,19 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument(
         "--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns (default 0)"
     )
-    cal.add_argument("--seed", type=int, default=0, help="RANSAC random seed (default 0)")
+    cal.add_argument("--seed", type=_SEED, default=0, help="RANSAC random seed, >= 0 (default 0)")
     cal.add_argument(
         "--workers",
-        type=int,
+        type=_integer(1, 1024),
         default=None,
         help="processes for the per-track fits (default: one per core; 1 = no pool); results are identical",
     )
     cal.add_argument(
         "--verbose", action="store_true", help="print what every stage kept and discarded, and why"
     )
-    cal.add_argument("--out", required=True, help="CalibrationResult JSON to write (atomically)")
+    cal.add_argument(
+        "--out", required=True, help="CalibrationResult JSON to write (atomically; its directory must exist)"
+    )
     cal.set_defaults(func=_cmd_calibrate)
 
     dmn = sub.add_parser("daemon", help="run the RSU service (Zenoh in, MCAP log, calibration out)")
@@ -235,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--rsu", default=None, help="only this RSU (default: every RSU that answers)")
     st.add_argument("--camera", default=None, help="only this camera")
     st.add_argument(
-        "--timeout", dest="timeout_s", type=float, default=3.0, help="seconds to wait for answers"
+        "--timeout", dest="timeout_s", type=_positive_seconds, default=3.0, help="seconds to wait for answers"
     )
     st.add_argument("--json", action="store_true", help="print the raw JSON answers")
     st.set_defaults(func=_cmd_status)
@@ -244,9 +388,13 @@ def build_parser() -> argparse.ArgumentParser:
         "demo", help="daemon + simulated RSU and calibration vehicle on loopback, checked against the truth"
     )
     demo.add_argument("--preset", default="sil-west", help="simulator preset (default sil-west, 2 cameras)")
-    demo.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
-    demo.add_argument("--rate", type=float, default=20.0, help="time acceleration (default 20x)")
-    demo.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds")
+    demo.add_argument("--seed", type=_SEED, default=0, help="simulator seed, >= 0 (default 0)")
+    demo.add_argument(
+        "--rate", type=_positive_seconds, default=20.0, help="time acceleration, > 0 (default 20x)"
+    )
+    demo.add_argument(
+        "--timeout", type=_positive_seconds, default=120.0, help="give up after this many seconds"
+    )
     demo.set_defaults(func=_cmd_demo)
     return parser
 
@@ -255,10 +403,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
-        level=(args.log_level or "WARNING").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+        level=args.log_level or "WARNING", format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     try:
         code: int = args.func(args)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except ValidationError as err:
         print(f"error: {describe_validation_error(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -271,6 +422,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         # A daemon that cannot go on the bus (endpoint in use, bad Zenoh config) is a configuration error.
         return EXIT_BAD_INPUT if isinstance(err, BusError) else EXIT_FAILED
+    except Exception as err:
+        # The last line of defence: a bug must still not show a user a traceback. It is logged at DEBUG
+        # (--log-level DEBUG shows it); tests/fuzz/test_fuzz_cli.py fails on this message.
+        log.debug("internal error", exc_info=True)
+        print(
+            f"error: internal error in rsucal {args.command}: {type(err).__name__}: {err} "
+            "(please report it; --log-level DEBUG shows where)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
     return code
 
 

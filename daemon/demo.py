@@ -47,6 +47,8 @@ MAX_POSITION_ERROR_M = 0.5
 # The configured camera position is deliberately approximate, as an installer would know it.
 POSITION_ERROR_M = 5.0
 COVERAGE_RADIUS_M = 150.0
+# Scaled seconds, beyond exit grace + quiet period, for the daemon to start a job after the replay ends.
+SETTLE_MARGIN_S = 10.0
 
 Printer = Callable[[str], None]
 
@@ -168,7 +170,13 @@ def run_demo(
             )
             publisher.start()
             client = zenoh.open(client_config([endpoint]))
-            statuses = _wait_for_jobs(client, config, started + timeout_s)
+            # Once the replay is over and the daemon had time to see the vehicle leave and to wait the
+            # quiet period, a camera short of traversals can never be calibrated: stop there.
+            settled_ns = messages[-1].stamp_ns + int(
+                (config.trigger.exit_grace_s + config.trigger.quiet_period_s + SETTLE_MARGIN_S) * 1e9
+            )
+            replay = _Replay(publisher, clock, settled_ns)
+            statuses = _wait_for_jobs(client, config, started + timeout_s, replay, out)
             stop.set()
             publisher.join(timeout=5.0)
             results = _read_calibrations(client, config)
@@ -194,24 +202,64 @@ def _statuses(client: zenoh.Session, config: DaemonConfig) -> dict[str, Calibrat
     return statuses
 
 
+@dataclass(frozen=True, slots=True)
+class _Replay:
+    """The publisher thread and the scaled time after which the daemon has seen everything it will see."""
+
+    thread: threading.Thread
+    clock: ScaledClock
+    settled_ns: int
+
+    def is_settled(self) -> bool:
+        return not self.thread.is_alive() and self.clock.now_ns() >= self.settled_ns
+
+
+def _is_finished(status: CalibrationStatus) -> bool:
+    return (
+        status.state in ("calibrated", "refused")
+        and status.last_job is not None
+        and status.last_job.finished_ns is not None
+    )
+
+
+def _cannot_calibrate(status: CalibrationStatus | None, camera_id: str, needed: int) -> str | None:
+    """Why a camera can no longer be calibrated once the replay has settled; None while a job may come."""
+    if status is None:
+        return f"{camera_id}: no status answer (0 of {needed} traversals counted)"
+    if status.state == "calibrating" or (status.last_job is not None and status.last_job.finished_ns is None):
+        return None
+    if status.traversals < status.traversals_needed:
+        return (
+            f"{camera_id}: {status.traversals} of {status.traversals_needed} traversals counted "
+            f"(trigger.min_traversals); the replay is over, so no job can start"
+        )
+    return None
+
+
 def _wait_for_jobs(
-    client: zenoh.Session, config: DaemonConfig, deadline: float
+    client: zenoh.Session, config: DaemonConfig, deadline: float, replay: _Replay, out: Printer
 ) -> dict[str, CalibrationStatus]:
-    """Poll the status over the bus until every camera finished a job (or the deadline)."""
+    """Poll the status over the bus until every camera finished a job, nothing more can happen, or the
+    deadline; a camera that cannot be calibrated is explained (traversals counted vs needed)."""
     wanted = {camera.camera_id for camera in config.cameras}
+    needed = config.trigger.min_traversals
     statuses: dict[str, CalibrationStatus] = {}
+    pending = wanted
     while time.monotonic() < deadline:
         statuses = _statuses(client, config)
-        done = {
-            camera_id
-            for camera_id, status in statuses.items()
-            if status.state in ("calibrated", "refused")
-            and status.last_job is not None
-            and status.last_job.finished_ns is not None
-        }
-        if done >= wanted:
+        pending = {c for c in wanted if not (c in statuses and _is_finished(statuses[c]))}
+        if not pending:
             break
+        if replay.is_settled():
+            stuck = {c: _cannot_calibrate(statuses.get(c), c, needed) for c in sorted(pending)}
+            if all(reason is not None for reason in stuck.values()):
+                out("  nothing more can happen:")
+                for reason in stuck.values():
+                    out(f"    {reason}")
+                break
         time.sleep(0.2)
+    else:
+        out(f"  gave up at --timeout; cameras without a finished job: {', '.join(sorted(pending))}")
     return statuses
 
 
@@ -245,11 +293,12 @@ def _report(
         result = results.get(camera_id)
         status = statuses.get(camera_id)
         if result is None:
-            reasons = (
-                "; ".join(status.last_job.verdict.reasons)
-                if status and status.last_job and status.last_job.verdict
-                else "no job finished"
-            )
+            if status and status.last_job and status.last_job.verdict:
+                reasons = "; ".join(status.last_job.verdict.reasons)
+            elif status is not None:
+                reasons = f"no job finished; {status.traversals} of {status.traversals_needed} traversals"
+            else:
+                reasons = "no job finished; no status answer"
             out(f"{camera_id:<16}{'none':<10}{'':>15}{'':>10}{'':>11}{'':>13}{'':>15}  FAIL ({reasons})")
             passed = False
             continue

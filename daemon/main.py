@@ -36,7 +36,7 @@ from daemon.clock import Clock, SystemClock
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
 from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
 from daemon.recording import RotatingRecorder, iter_v2x, list_recordings
-from daemon.state import CameraState, StateStore
+from daemon.state import CameraState, StateStore, prepare_state_dir
 from daemon.traversals import (
     Coverage,
     JobWindow,
@@ -163,8 +163,7 @@ class Daemon:
 
     def start(self) -> None:
         """Recover state, start job workers and threads, then go on the bus (BusError on a bad endpoint)."""
-        self.state_dir.mkdir(parents=True, exist_ok=True)
-        self.recordings_dir.mkdir(parents=True, exist_ok=True)
+        prepare_state_dir(self.state_dir)  # InputError (exit 2) when unusable: a configuration error
         self._recover()
         self._runner = JobRunner(self.config.jobs.max_parallel)
         self._threads = [

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from pydantic import Field, ValidationError
 
+from pipeline.errors import InputError
 from schemas.common import StampNs, StrictModel, decode_json, describe_validation_error
 from schemas.results import CalibrationResult, JobSummary
 
@@ -272,3 +273,23 @@ def _remove_stale_tmp(directory: Path) -> list[Path]:
     for path in stale:
         path.unlink(missing_ok=True)
     return stale
+
+
+def prepare_state_dir(state_dir: Path) -> Path:
+    """Create `state_dir` (and its recordings/) if needed and prove it writable; InputError naming the field.
+
+    Run before anything else at start-up: an unusable state directory is a configuration error (exit 2, so
+    systemd's RestartPreventExitStatus=2 stops instead of restarting every few seconds).
+    """
+    state_dir = Path(state_dir)
+    try:
+        if state_dir.exists() and not state_dir.is_dir():
+            raise InputError("storage.state_dir", f"{state_dir} exists and is not a directory")
+        (state_dir / "recordings").mkdir(parents=True, exist_ok=True)
+        probe = state_dir / f".write-probe-{os.getpid()}.tmp"
+        with open(probe, "wb") as stream:
+            stream.write(b"rsucal")
+        probe.unlink()
+    except OSError as err:
+        raise InputError("storage.state_dir", f"{state_dir} is not usable: {err.strerror or err}") from err
+    return state_dir

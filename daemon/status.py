@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import re
 import sys
 import textwrap
 import time
@@ -44,6 +46,8 @@ EXIT_NO_ANSWER = 1
 DEFAULT_TIMEOUT_S = 2.0
 # The same characters as schemas.common.Identifier: safe inside a key expression (no `/`, `*`, `$`).
 _IDENTIFIER_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_.-")
+# <protocol>/<address>[?<metadata>][#<config>] as Zenoh takes it; checked here for a plain message.
+_ENDPOINT = re.compile(r"^[a-z][a-z0-9+-]*/\S+$")
 _CELL_MAX_CHARS = 44
 _WIDTH = 110
 
@@ -116,11 +120,24 @@ def fetch_status(
     """
     rsu_part = _check_identifier("--rsu", rsu)
     camera_part = _check_identifier("--camera", camera)
-    if not timeout_s > 0.0:
-        raise InputError("--timeout-s", f"{timeout_s} must be positive")
+    if not (math.isfinite(timeout_s) and timeout_s > 0.0):
+        raise InputError("--timeout", f"{timeout_s} must be a finite number of seconds > 0")
+    for endpoint in connect:
+        if not _ENDPOINT.match(endpoint):
+            raise InputError(
+                "--connect",
+                f"{endpoint!r} is not a Zenoh endpoint like tcp/127.0.0.1:7447 or tls/host:7447 "
+                "(<protocol>/<address>)",
+            )
+    if zenoh_config is not None and not zenoh_config.is_file():
+        raise InputError("--zenoh-config", f"{zenoh_config} is not a readable file")
     endpoints = tuple(connect) or (() if zenoh_config is not None else (DEFAULT_ENDPOINT,))
     where = endpoints or (f"the endpoints of {zenoh_config}",)
-    session = open_session(client_config(endpoints, config_file=zenoh_config), where)
+    try:
+        config = client_config(endpoints, config_file=zenoh_config)
+    except BusError as err:  # the file or an endpoint is malformed: bad input, not an absent daemon
+        raise InputError("--zenoh-config" if zenoh_config is not None else "--connect", str(err)) from err
+    session = open_session(config, where)
     try:
         # All gets in flight at once: the read takes one timeout at worst, not four.
         pending_statuses = start_query(session, status_key(rsu_part, camera_part), timeout_s)
@@ -344,5 +361,9 @@ def status_main(args: argparse.Namespace) -> int:
     except BusError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_NO_ANSWER
+    if report.answered and args.camera is not None and not report.statuses:
+        # Daemons answered, but none has this camera: a typo, not an outage.
+        rsus = ", ".join(h.rsu_id for h in report.health)
+        raise InputError("--camera", f"no camera {args.camera!r} on the RSU(s) that answered ({rsus})")
     print(report_json(report) if args.json else format_status(report))
     return EXIT_HEALTHY if report.answered else EXIT_NO_ANSWER

@@ -44,6 +44,8 @@ class Run:
 def _rsucal(args: Sequence[str], out: Path | None = None) -> Run:
     """main() in-process, with its output captured (module-scoped fixtures cannot use capsys)."""
     stdout, stderr = io.StringIO(), io.StringIO()
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)  # --out's directory must exist (rsucal creates none)
     argv = [*args, "--out", str(out)] if out is not None else list(args)
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
         code = cli.main(argv)

@@ -8,6 +8,7 @@ import re
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 from helpers import free_port
@@ -268,3 +269,57 @@ def test_status_main_exits_1_when_nothing_listens(capsys: pytest.CaptureFixture[
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     assert status_main(_args(endpoint, timeout_s=0.3)) == EXIT_NO_ANSWER
     assert capsys.readouterr().out.startswith(f"no RSU answered on {endpoint} within 0.3 s")
+
+
+def test_an_unknown_camera_on_an_answering_daemon_exits_2_naming_it(
+    daemon: Daemon, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from daemon.cli import main
+
+    code = main(["status", "--connect", daemon.endpoint, "--camera", "nope", "--timeout", "5"])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert captured.err.startswith("error: --camera: no camera 'nope'") and "r1" in captured.err
+    assert captured.out == ""  # no "0 camera(s)" table
+    # The camera that exists still answers with exit 0.
+    assert main(["status", "--connect", daemon.endpoint, "--camera", "c1", "--timeout", "5"]) == 0
+
+
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (["--connect", "foo"], "--connect"),
+        (["--connect", "tcp/127.0.0.1:7447", "--connect", " "], "--connect"),
+        (["--zenoh-config", "/nonexistent/client.json5"], "--zenoh-config"),
+        (["--timeout", "0"], "--timeout"),
+        (["--timeout", "-1"], "--timeout"),
+        (["--timeout", "nan"], "--timeout"),
+        (["--rsu", "a/b"], "--rsu"),
+    ],
+)
+def test_bad_status_arguments_exit_2_with_one_line_naming_the_option(
+    argv: list[str], option: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from daemon.cli import main
+
+    try:
+        code = main(["status", *argv])
+    except SystemExit as stop:  # argparse's own checks (--timeout) exit from parse_args
+        code = int(stop.code or 0)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert option in err and "--timeout-s" not in err
+    assert "Json5Err" not in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1, err
+
+
+def test_a_malformed_zenoh_config_file_is_bad_input_not_an_absent_daemon(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from daemon.cli import main
+
+    config = tmp_path / "client.json5"
+    config.write_text("{ mode: 'client', connect: { endpoints: ['foo'] } }")
+    assert main(["status", "--zenoh-config", str(config), "--timeout", "0.2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --zenoh-config:") and "Json5Err" not in err, err
