@@ -90,15 +90,20 @@ _SEED = _integer(0, MAX_SEED, ">= 0 (and below 2**128)")
 def _output_file(option: str, text: str, suffix: str | None = None) -> Path:
     """A file to write: its directory must exist (nothing is created silently), it must not be a directory."""
     path = Path(text)
-    if not text.strip() or path.is_dir() or text.endswith(os.sep):
-        raise InputError(option, f"{text!r} is a directory or empty; expected a file name")
+    if not text.strip() or text.endswith(os.sep):
+        raise InputError(option, f"{text!r} is empty or a directory; expected a file name")
     if suffix is not None and path.suffix.lower() != suffix:
         raise InputError(option, f"{text!r} must end with {suffix}")
-    parent = path.parent
-    if not parent.is_dir():
-        raise InputError(option, f"{text!r}: directory {str(parent)!r} does not exist")
-    if not os.access(parent, os.W_OK):
-        raise InputError(option, f"{text!r}: directory {str(parent)!r} is not writable")
+    try:
+        if path.is_dir():
+            raise InputError(option, f"{text!r} is a directory; expected a file name")
+        parent = path.parent
+        if not parent.is_dir():
+            raise InputError(option, f"{text!r}: directory {str(parent)!r} does not exist")
+        if not os.access(parent, os.W_OK):
+            raise InputError(option, f"{text!r}: directory {str(parent)!r} is not writable")
+    except OSError as err:  # a name too long, a loop of symlinks...
+        raise InputError(option, f"{text!r}: {err.strerror or err}") from err
     return path
 
 
@@ -107,14 +112,14 @@ def _output_dir(option: str, text: str) -> Path:
     path = Path(text)
     if not text.strip():
         raise InputError(option, "empty; expected a directory")
-    if path.exists() and not path.is_dir():
-        raise InputError(option, f"{text!r} exists and is not a directory")
     try:
+        if path.exists() and not path.is_dir():
+            raise InputError(option, f"{text!r} exists and is not a directory")
         path.mkdir(parents=True, exist_ok=True)
+        if not os.access(path, os.W_OK):
+            raise InputError(option, f"{text!r} is not writable")
     except OSError as err:
         raise InputError(option, f"cannot create {text!r}: {err.strerror or err}") from err
-    if not os.access(path, os.W_OK):
-        raise InputError(option, f"{text!r} is not writable")
     return path
 
 
