@@ -3,7 +3,7 @@
 In: detections `rsu/{rsu}/camera/*/detections` and V2X `v2x/cam/*`, handed to `on_inbound(key, payload,
 received_ns)` straight from Zenoh's callback threads (no decoding here: the ingest thread decodes).
 Out: calibration results put on `.../calibration`; queryables for calibration, status, trigger and health,
-served on our own threads; liveliness token `rsu/{rsu}/alive`. Keys are DESIGN.md's bus table.
+served on our own threads; liveliness token `rsu/{rsu}/alive`. Keys are docs/design.md's bus table.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def session_config(zenoh_config: ZenohConfig) -> zenoh.Config:
 
     Without a file every field applies. With a file, mode/listen/connect override it only when set in the
     YAML, so a TLS file's `tls/...` listeners survive the `listen` default; multicast_scouting always
-    applies (off unless the YAML turns it on), so no file silently enables UDP multicast (DESIGN.md).
+    applies (off unless the YAML turns it on), so no file silently enables UDP multicast (docs/design.md).
     """
     explicit = zenoh_config.model_fields_set
     has_file = zenoh_config.config_file is not None

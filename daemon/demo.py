@@ -328,5 +328,9 @@ def _report(
         f"required: accepted, delta_p mean <= {MAX_DELTA_P_MEAN_M} m, e mean <= {MAX_E_MEAN_PCT} %, "
         f"camera position within {MAX_POSITION_ERROR_M} m"
     )
+    out(
+        "(delta_p and e as rsucal evaluate scores them: every truth box of the vehicle against its true "
+        "footprint; see docs/method.md)"
+    )
     out(f"demo {'PASSED' if passed else 'FAILED'} in {elapsed_s:.1f} s")
     return 0 if passed else 1

@@ -348,10 +348,15 @@ def format_summary(result: CalibrationResult, written: Path | None = None) -> st
         lines.append(f"             lat {position.lat:.7f} lon {position.lon:.7f} alt {position.alt:.3f} m")
     quality = result.quality
     if quality is not None:
-        lines.append(f"delta_p      mean {quality.delta_p_mean_m:.3f} m, max {quality.delta_p_max_m:.3f} m")
+        # Labels say what the figures are measured on: rsucal evaluate scores other boxes against the true
+        # footprints, and the daemon counts drive-pasts through coverage (docs/method.md, "Three numbers").
+        lines.append(
+            f"delta_p      mean {quality.delta_p_mean_m:.3f} m, max {quality.delta_p_max_m:.3f} m "
+            "(fitted boxes vs reported poses)"
+        )
         lines.append(f"e            mean {quality.e_mean_pct:.3f} %, max {quality.e_max_pct:.3f} %")
         lines.append(
-            f"traversals   {quality.traversals} ({quality.tracks} tracks, "
+            f"traversals   {quality.traversals} in the fit ({quality.tracks} tracks, "
             f"{quality.correspondences} correspondences, box RMSE {quality.reprojection_rmse_px:.2f} px)"
         )
     uncertainty = result.uncertainty

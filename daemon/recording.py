@@ -1,6 +1,6 @@
 """MCAP recordings: the daemon's log of every valid incoming message and the offline/simulated input format.
 
-Layout (DESIGN.md): one channel per key expression, message_encoding "json", schema "jsonschema" from the
+Layout (docs/design.md): one channel per key expression, message_encoding "json", schema "jsonschema" from the
 pydantic model, log_time = receive ns, publish_time = stamp_ns; chunked, zstd. This is the only module
 that imports mcap. Reading is deliberately forgiving: a truncated or partly corrupted file yields every
 message that can still be proven intact (chunk CRCs), and bad messages are counted, never fatal.

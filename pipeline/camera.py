@@ -1,6 +1,6 @@
 """Camera geometry: OpenCV pinhole + [k1, k2, p1, p2, k3] distortion, rotations, camera poses.
 
-Conventions (DESIGN.md): camera frame x right, y down, z forward; X_cam = R_cam_from_local @ X_local + t.
+Conventions (docs/design.md): camera frame x right, y down, z forward; X_cam = R_cam_from_local @ X_local + t.
 Projection is our own vectorised numpy (bit-compatible with cv2.projectPoints, see the property tests)
 because the simulator and the refinement project millions of points in small batches.
 """

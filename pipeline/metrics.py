@@ -436,8 +436,8 @@ def format_evaluation(evaluation: Evaluation) -> str:
         f"  boxes used           {ev.boxes_used} of {ev.boxes_total} with the calibration vehicle",
         f"  boxes excluded       {ev.excluded_border} touching the border, "
         f"{ev.excluded_no_ground} not meeting the ground, {ev.missing_box} not in the truth file",
-        f"  delta_p  mean / max  {delta}   (paper delta_p,m / delta_p,w)",
-        f"  e        mean / max  {e_pct}   (paper e_m / e_w)",
+        f"  delta_p  mean / max  {delta}   (paper delta_p,m / delta_p,w; truth boxes vs true footprints)",
+        f"  e        mean / max  {e_pct}   (paper e_m / e_w; the same boxes)",
         f"  position error       {_fmt(ev.position_error_m, '.3f', 'm'):>11}   ({split})",
         f"  rotation error       {_fmt(ev.rotation_error_deg, '.4f', 'deg'):>11}",
     ]

@@ -1,4 +1,4 @@
-"""Validation (paper Sec. IV-B metrics as gates, DESIGN.md 'Validation gates'): evidence -> Verdict.
+"""Validation (paper Sec. IV-B metrics as gates, docs/design.md 'Validation gates'): evidence -> Verdict.
 
 A wrong calibration is worse than none: every gate that fails adds a reason and the verdict is refused.
 Traversals are counted from the data, not trusted from the caller: two tracks belong to separate traversals
@@ -20,7 +20,7 @@ from schemas.results import Verdict
 
 @dataclass(frozen=True, slots=True)
 class ValidationGates:
-    """Defaults from DESIGN.md; all configurable."""
+    """Defaults from docs/design.md; all configurable."""
 
     min_traversals: int = 2
     max_delta_p_mean_m: float = 0.5

@@ -1,4 +1,4 @@
-"""Pydantic models of every message, file and result of rsucal (DESIGN.md); imports nothing of ours."""
+"""Pydantic models of every message, file and result of rsucal (docs/design.md); imports nothing of ours."""
 
 from schemas.common import Box, CameraIntrinsics, LocalOrigin, VehicleProfile
 from schemas.config import DaemonConfig

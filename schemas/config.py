@@ -2,7 +2,7 @@
 
 Every field has a default that works on one machine with nothing else installed, except what only the site
 knows: rsu_id, the cameras and the calibration vehicles. deploy/rsu.example.yaml documents each field.
-Durations are seconds (`_s`), sizes bytes (`_bytes`); names follow DESIGN.md.
+Durations are seconds (`_s`), sizes bytes (`_bytes`); names follow docs/design.md.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ MIB = 1024**2
 
 
 class ZenohConfig(StrictModel):
-    """The daemon's Zenoh session (DESIGN.md: peer on loopback, multicast scouting off)."""
+    """The daemon's Zenoh session (docs/design.md: peer on loopback, multicast scouting off)."""
 
     mode: Literal["peer", "client"] = Field(
         default="peer", description="peer: standalone or mesh; client: through a Zenoh router"
@@ -167,7 +167,7 @@ class IngestConfig(StrictModel):
 
 
 class GatesConfig(StrictModel):
-    """Validation gates before anything is published (DESIGN.md defaults)."""
+    """Validation gates before anything is published (docs/design.md defaults)."""
 
     min_traversals: int = Field(default=2, ge=2, le=100)
     max_delta_p_mean_m: float = Field(default=0.5, gt=0.0, le=10.0, allow_inf_nan=False)

@@ -1,4 +1,4 @@
-"""Bus messages (DESIGN.md, bus table): camera detections and V2X positions, plus the decoded vehicle pose."""
+"""Bus messages (docs/design.md, bus keys): camera detections and V2X positions, and the decoded pose."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""What rsucal publishes and persists: the calibration result and the per-camera status (DESIGN.md)."""
+"""What rsucal publishes and persists: the calibration result and the per-camera status (docs/design.md)."""
 
 from __future__ import annotations
 
@@ -104,7 +104,7 @@ class Provenance(StrictModel):
 
 
 class CalibrationResult(StrictModel):
-    """One camera's geo-referenced extrinsic: X_cam = R @ (X_utm - origin) + t (DESIGN.md)."""
+    """One camera's geo-referenced extrinsic: X_cam = R @ (X_utm - origin) + t (docs/design.md)."""
 
     schema_version: str = SCHEMA_VERSION
     rsu_id: Identifier

@@ -109,7 +109,7 @@ def test_round_trip_returns_what_was_written(tmp_path: Path) -> None:
 
 
 def test_layout_as_designed_read_by_the_reference_reader(tmp_path: Path) -> None:
-    # DESIGN.md: channel per key, json messages, jsonschema from the model, log_time = receive,
+    # docs/design.md: channel per key, json messages, jsonschema from the model, log_time = receive,
     # publish_time = stamp, chunked + zstd. Checked with mcap's own reader, not ours.
     path = tmp_path / "rec.mcap"
     _write_sample(path, frames=6)

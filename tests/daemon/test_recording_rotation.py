@@ -126,7 +126,7 @@ def test_files_are_named_by_first_receive_time_and_hold_the_raw_payloads(tmp_pat
     (path,) = _paths(tmp_path)
     assert path.name == f"rsu-1-{T0 + 5:019d}.mcap"
     assert recorder.bytes_written == path.stat().st_size  # counted, not stat'ed, and exact
-    with open(path, "rb") as stream:  # mcap's reference reader: the layout of DESIGN.md
+    with open(path, "rb") as stream:  # mcap's reference reader: the layout of docs/design.md
         reader = make_reader(stream)
         summary = reader.get_summary()
         assert summary is not None

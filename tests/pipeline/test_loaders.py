@@ -240,7 +240,7 @@ def test_intrinsics_and_vehicle_round_trip(tmp_path: Path) -> None:
     write_simulation_files(sim, tmp_path)  # type: ignore[arg-type]
     assert load_intrinsics(tmp_path / "camera.yaml") == INTRINSICS
     assert load_vehicle(tmp_path / "vehicle.yaml") == VEHICLE
-    # Keys exactly as DESIGN.md names them, in a file a human can edit.
+    # Keys exactly as docs/design.md names them, in a file a human can edit.
     assert set(yaml.safe_load((tmp_path / "camera.yaml").read_text())) == {
         "width",
         "height",

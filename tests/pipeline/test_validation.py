@@ -1,4 +1,4 @@
-"""Validation gates (DESIGN.md) and traversal counting from the data."""
+"""Validation gates (docs/design.md) and traversal counting from the data."""
 
 from __future__ import annotations
 

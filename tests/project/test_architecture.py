@@ -1,4 +1,4 @@
-"""Imports point one way, daemon -> pipeline -> schemas (DESIGN.md): checked on the real import graph."""
+"""Imports point one way, daemon -> pipeline -> schemas (docs/design.md): checked on the real import graph."""
 
 from __future__ import annotations
 
