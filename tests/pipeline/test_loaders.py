@@ -202,19 +202,41 @@ _row_text = st.tuples(st.lists(_number_text, max_size=6), st.sampled_from([", ",
 _key_text = st.tuples(st.integers(0, 10**19), st.sampled_from(["{}", "{}", "{}", "'{}'", '"{}"', "0{}"])).map(
     lambda key: key[1].format(key[0])  # 0{}: octal in YAML 1.1
 )
+_indent_text = st.sampled_from(["", "  ", "    ", " "])
 _entry_text = st.one_of(
     st.tuples(_key_text, _row_text).map(lambda e: f"{e[0]}: {e[1]}"),
-    st.tuples(_key_text, st.sampled_from(["", "  ", "    "]), st.lists(_row_text, max_size=3)).map(
+    st.tuples(_key_text, _indent_text, st.lists(_row_text, max_size=3)).map(
         lambda e: "\n".join([f"{e[0]}:", *(f"{e[1]}- {row}" for row in e[2])])
+    ),
+    # The toolbox's block style: one value per line (poses), or nested block rows (detections, as
+    # PyYAML dumps a list of lists), sometimes with a continuation line at another indentation.
+    st.tuples(_key_text, _indent_text, st.lists(_number_text, max_size=7)).map(
+        lambda e: "\n".join([f"{e[0]}:", *(f"{e[1]}- {value}" for value in e[2])])
+    ),
+    st.tuples(
+        _key_text,
+        _indent_text,
+        st.lists(st.lists(_number_text, min_size=1, max_size=5), max_size=3),
+        st.sampled_from(["  ", "  ", "  ", " ", "   "]),
+    ).map(
+        lambda e: "\n".join(
+            [
+                f"{e[0]}:",
+                *(
+                    "\n".join([f"{e[1]}- - {row[0]}", *(f"{e[1]}{e[3]}- {value}" for value in row[1:])])
+                    for row in e[2]
+                ),
+            ]
+        )
     ),
 )
 
 
-@settings(max_examples=150, deadline=None)
-@given(entries=st.lists(_entry_text, max_size=6))
-def test_fast_parser_agrees_with_pyyaml(entries: list[str]) -> None:
+@settings(max_examples=300, deadline=None)
+@given(entries=st.lists(_entry_text, max_size=6), blank=st.sampled_from(["", "\n", "  \n"]))
+def test_fast_parser_agrees_with_pyyaml(entries: list[str], blank: str) -> None:
     # The fast path must give exactly what PyYAML gives, or decline (None) and let PyYAML decide.
-    text = "\n".join(entries) + "\n"
+    text = ("\n" + blank).join(entries) + "\n"
     fast = _fast_parse_stamped_rows(text)
     if fast is None:
         return
@@ -233,6 +255,25 @@ def test_fast_parser_declines_other_layouts() -> None:
     assert _fast_parse_stamped_rows("1: [1, 2]\n1: [3, 4]\n") is None  # duplicate: PyYAML reports the line
     assert _fast_parse_stamped_rows("1:\n  - [1]\n    - [2]\n") is None  # inconsistent indentation
     assert _fast_parse_stamped_rows("- [1, 2]\n") is None
+    assert _fast_parse_stamped_rows("1:\n- 1.0\n  - 2.0\n") is None  # block values at two indentations
+    assert _fast_parse_stamped_rows("1:\n- 1.0\n- [2.0]\n") is None  # values and rows mixed
+    assert _fast_parse_stamped_rows("1: [1]\n- 2.0\n") is None  # a flow row followed by items
+    assert _fast_parse_stamped_rows("1:\n- 1.0e5\n") is None  # exponent without sign: a string in YAML 1.1
+
+
+def test_fast_parser_reads_the_toolbox_block_style() -> None:
+    """The reference toolbox's real poses.yaml layout (one value per line) and PyYAML's block dump of the
+    detections (a nested block sequence per box) take the fast path and give PyYAML's values."""
+    poses = "1659612577050000000:\n- 1.2865700321272016\n- 14.698403273709118\n- 5.100000000000023\n"
+    poses += "- 3.2664690329706874\n- -0.0\n- 1.0e-05\n"
+    detections = yaml.safe_dump(
+        {1659612577050000000: [[87.7, 333.03, 56.68, 34.18, 4], [1.5, 2.5, 3.0, 4.0, 5]]}
+    )
+    assert detections.startswith("1659612577050000000:\n- - 87.7\n  - 333.03\n")
+    for text in (poses, detections):
+        fast = _fast_parse_stamped_rows(text)
+        assert fast is not None and fast == yaml.safe_load(text)
+    assert fast[1659612577050000000][1] == [1.5, 2.5, 3.0, 4.0, 5]
 
 
 def test_intrinsics_and_vehicle_round_trip(tmp_path: Path) -> None:
