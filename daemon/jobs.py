@@ -384,7 +384,7 @@ def _init_worker(parent_pid: int, started_channel: Connection) -> None:
     global _started_channel
     die_with_parent(parent_pid)
     _started_channel = started_channel
-    import pipeline.calibrate  # noqa: F401 - the point: importing cv2, scipy, sklearn takes ~1.5 s
+    import pipeline.calibrate  # noqa: F401 - the point: importing cv2 and scipy takes ~1 s
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _terminate_worker)

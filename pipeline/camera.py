@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation as SciRotation
 
 from pipeline.arrays import FloatArray, Pixels, Points3, Rotation, Vec3, check_shape
 from schemas.common import CameraIntrinsics
@@ -182,8 +181,15 @@ def rotation_from_rvec(rvec: FloatArray) -> Rotation:
 
 def rvec_from_rotation(R: Rotation) -> FloatArray:
     """Rotation matrix (3, 3) -> Rodrigues vector (3,)."""
-    # Not cv2.Rodrigues: it returns exactly zero for any rotation below 1e-5 rad (sin theta < 1e-5).
-    return np.asarray(SciRotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec(), dtype=np.float64)
+    # Not cv2.Rodrigues: it returns exactly zero for any rotation below 1e-5 rad (sin theta < 1e-5). From
+    # the unit quaternion (w >= 0) instead, as scipy's Rotation.as_rotvec does: angle = 2 atan2(|v|, w) is
+    # accurate at every angle (atan2 keeps full relative precision for tiny |v|), 2 / w its limit at 0.
+    q = quaternion_wxyz_from_rotation(np.asarray(R, dtype=np.float64))
+    w, v = float(q[0]), q[1:]
+    norm = float(np.linalg.norm(v))
+    angle = 2.0 * math.atan2(norm, w)
+    scale = angle / norm if norm > 0.0 else 2.0 / w
+    return np.asarray(scale * v, dtype=np.float64)
 
 
 def quaternion_wxyz_from_rotation(R: Rotation) -> FloatArray:

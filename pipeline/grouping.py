@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
-from sklearn.cluster import DBSCAN
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Points3, Vec3, check_shape
 from pipeline.camera import CameraModel, project_points_cam, undistort_pixels
@@ -285,8 +284,7 @@ def _cluster_component(
     the scores together (e.g. followers at different gaps, each linked to the truth) could share a
     cluster merely by sitting a few metres apart. A group is kept only where similarity links it.
     """
-    dbscan = DBSCAN(eps=params.dbscan_eps_m, min_samples=params.dbscan_min_samples)
-    labels = dbscan.fit_predict(centers[members])
+    labels = dbscan_labels(centers[members], params.dbscan_eps_m, params.dbscan_min_samples)
     pieces: list[list[int]] = []
     for label in np.unique(labels):
         cluster = members[labels == label]
@@ -335,3 +333,38 @@ def _make_group(
         mean_overlap_ratio=float(off_diagonal.mean()) if off_diagonal.size else 0.0,
         correspondences=int(sum(int(items[i].inliers.sum()) for i in index)),
     )
+
+
+def dbscan_labels(points: FloatArray, eps: float, min_samples: int) -> IntArray:
+    """DBSCAN cluster labels (N,) of points (N, D), -1 for noise: scikit-learn's DBSCAN(eps, min_samples)
+    with the Euclidean metric, label for label.
+
+    Neighbours are the points within `eps` (inclusive, the point itself counted); a core point has at
+    least `min_samples`. Clusters grow from the core points in index order and are numbered in that order;
+    a border point (a neighbour of a core point, not core itself) joins the first cluster that reaches it.
+    Written out (N is a few dozen camera positions) because importing scikit-learn costs more than the
+    rest of a calibration's start-up.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    count = len(points)
+    labels = np.full(count, -1, dtype=np.int64)
+    if count == 0:
+        return labels
+    differences = points[:, None, :] - points[None, :, :]
+    is_neighbour = np.einsum("ijk,ijk->ij", differences, differences) <= eps * eps
+    is_core = is_neighbour.sum(axis=1) >= min_samples
+    cluster = 0
+    for seed in range(count):
+        if labels[seed] != -1 or not is_core[seed]:
+            continue
+        labels[seed] = cluster
+        stack = [seed]
+        while stack:
+            point = stack.pop()
+            for neighbour in np.flatnonzero(is_neighbour[point]):
+                if labels[neighbour] == -1:
+                    labels[neighbour] = cluster
+                    if is_core[neighbour]:
+                        stack.append(int(neighbour))
+        cluster += 1
+    return labels

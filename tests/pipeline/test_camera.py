@@ -359,3 +359,22 @@ def test_ground_point_straight_ahead_projects_to_the_principal_point(
     right_world = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
     pixels_right, _ = project_points((ground_point + right_world)[None, :], R, -R @ center, camera)
     assert pixels_right[0, 0] > 955.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    axis=st.tuples(*[st.floats(-1.0, 1.0) for _ in range(3)]).filter(lambda a: sum(v * v for v in a) > 1e-4),
+    angle=st.one_of(st.floats(0.0, math.pi - 1e-6), st.floats(0.0, 1e-5), st.floats(math.pi - 1e-3, math.pi)),
+)
+def test_rvec_from_rotation_matches_scipy_at_every_angle(
+    axis: tuple[float, float, float], angle: float
+) -> None:
+    """Tiny rotations (where cv2.Rodrigues returns 0) and near half turns included."""
+    rotvec = np.asarray(axis) / np.linalg.norm(axis) * angle
+    R = SciRotation.from_rotvec(rotvec).as_matrix()
+    ours = rvec_from_rotation(R)
+    expected = SciRotation.from_matrix(R).as_rotvec()
+    if angle < math.pi - 1e-3:
+        np.testing.assert_allclose(ours, expected, rtol=1e-9, atol=1e-15)
+    else:  # about pi, v and -v describe the same rotation: compare the rotations
+        np.testing.assert_allclose(rotation_from_rvec(ours), R, atol=1e-12)

@@ -7,11 +7,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.association import Trajectory
 from pipeline.camera import CameraModel, camera_rotation_from_view, project_points
 from pipeline.ground import GroundPlaneFit
-from pipeline.grouping import GroupingParams, GroupingResult, group_hypotheses
+from pipeline.grouping import GroupingParams, GroupingResult, dbscan_labels, group_hypotheses
 from pipeline.hypotheses import (
     Hypothesis,
     HypothesisParams,
@@ -434,3 +436,27 @@ def test_groups_of_equal_size_rank_by_correspondences() -> None:
 def test_empty_hypothesis_set() -> None:
     result = group_hypotheses(HypothesisSet((), {}), {}, [], CAMERA, VEHICLE, GroupingParams())
     assert result.groups == () and result.discarded == {} and result.r_ov.shape == (0, 0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    points=st.lists(
+        st.tuples(*[st.integers(-6, 6).map(lambda v: 1.7 * v) for _ in range(3)]), min_size=0, max_size=30
+    ),
+    eps=st.sampled_from([0.5, 2.0, 3.0, 8.0]),
+    min_samples=st.integers(1, 5),
+)
+def test_dbscan_labels_are_scikit_learns(
+    points: list[tuple[float, float, float]], eps: float, min_samples: int
+) -> None:
+    """Our DBSCAN gives scikit-learn's labels exactly (clusters, their numbering, noise, border points);
+    points on a coarse grid make duplicates, shared border points and near-eps distances common."""
+    from sklearn.cluster import DBSCAN
+
+    data = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    ours = dbscan_labels(data, eps, min_samples)
+    if len(data) == 0:
+        assert ours.shape == (0,)
+        return
+    expected = DBSCAN(eps=eps, min_samples=min_samples).fit_predict(data)
+    assert ours.tolist() == expected.tolist()
