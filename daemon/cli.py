@@ -234,6 +234,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         station_id=args.station_id,
         crs=args.crs,
         time_offset_ns=args.time_offset_ns,
+        frame=args.frame,
+        origin=args.origin,
     )
     for note in loaded.notes:
         print(f"note: {note}")
@@ -346,6 +348,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--crs",
         help=f"UTM EPSG code of the poses/result, e.g. EPSG:32632 (MCAP default: the zone of the first "
         f"V2X position; YAML default: {DEFAULT_YAML_CRS}, which only the lat/lon output depends on)",
+    )
+    cal.add_argument(
+        "--frame",
+        choices=("utm", "local"),
+        default="utm",
+        help="frame of --poses: utm (absolute, default) or local (a local metric frame: the result stays in "
+        "it, without lat/lon)",
+    )
+    cal.add_argument(
+        "--origin",
+        metavar="E,N",
+        help="place local --poses in UTM: their origin is at easting E, northing N of --crs (axes along grid "
+        "east/north); the result is then UTM with lat/lon",
     )
     cal.add_argument(
         "--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns (default 0)"

@@ -9,6 +9,7 @@ and field; recoverable problems (rejected messages, a damaged chunk) are returne
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import sys
@@ -28,7 +29,7 @@ from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
 from pipeline.loaders import load_intrinsics, load_toolbox_detections, load_toolbox_poses, load_vehicle
-from schemas.common import CameraIntrinsics, VehicleProfile
+from schemas.common import LOCAL_CRS, CameraIntrinsics, VehicleProfile
 from schemas.messages import VehiclePose
 from schemas.results import CalibrationResult
 
@@ -68,8 +69,14 @@ def load_offline_inputs(
     station_id: int | None = None,
     crs: str | None = None,
     time_offset_ns: int = 0,
+    frame: str = "utm",
+    origin: str | None = None,
 ) -> OfflineInputs:
     """Build one camera's CalibrationInputs from an MCAP recording or from the toolbox YAML pair.
+
+    YAML poses in a local metric frame (the toolbox's published track): `frame="local"` keeps them there
+    (result in crs LOCAL_CRS, no lat/lon); `origin="E,N"` with `crs` places that frame in the UTM zone, its
+    axes along grid east and north, so the result is UTM with lat/lon.
 
     MCAP: the detections of `camera_id` (may be omitted when the file holds one camera) and the V2X
     positions of `station_id` (may be omitted when there is one station), converted to UTM poses in
@@ -83,6 +90,19 @@ def load_offline_inputs(
         raise InputError(missing, "the YAML pair needs both --detections and --poses")
     if camera_id is not None and not _IDENTIFIER.match(camera_id):
         raise InputError("--camera-id", f"{camera_id!r} is not a camera id ([A-Za-z0-9_.-], 1-64 chars)")
+    if frame not in ("utm", "local"):
+        raise InputError("--frame", f"{frame!r} is not one of utm, local")
+    is_local = frame == "local" or origin is not None
+    if is_local and mcap_path is not None:
+        option = "--origin" if origin is not None else "--frame"
+        raise InputError(
+            option, "a recording's V2X positions are WGS84; a local frame applies to --poses only"
+        )
+    shift = _parsed_origin(origin) if origin is not None else None
+    if shift is not None and crs is None:
+        raise InputError("--origin", "needs --crs EPSG:N, the UTM zone the origin E,N is in")
+    if frame == "local" and origin is None and crs is not None:
+        raise InputError("--crs", "a local frame has no zone; give --origin E,N with --crs to place it")
     if crs is not None:
         crs = _checked_crs(crs, "--crs")
     intrinsics = load_intrinsics(Path(camera_path))
@@ -92,7 +112,10 @@ def load_offline_inputs(
         return _from_mcap(Path(mcap_path), intrinsics, vehicle, camera_id, station_id, crs, time_offset_ns)
     assert detections_path is not None and poses_path is not None
     notes: list[str] = []
-    if crs is None:
+    if frame == "local" and shift is None:
+        crs = LOCAL_CRS
+        notes.append("poses in a local metric frame: the result stays in it, without lat/lon")
+    elif crs is None:
         crs = DEFAULT_YAML_CRS
         notes.append(f"poses are UTM without a zone: assuming {crs} (set --crs for the lat/lon output)")
     if camera_id is None:
@@ -100,7 +123,14 @@ def load_offline_inputs(
         camera_id = stem if _IDENTIFIER.match(stem) else DEFAULT_CAMERA_ID
     detections = load_toolbox_detections(Path(detections_path), camera_id)
     poses = load_toolbox_poses(Path(poses_path))
-    _check_absolute_utm(Path(poses_path), poses)
+    if shift is not None:
+        east, north = shift
+        poses = [pose.model_copy(update={"x": pose.x + east, "y": pose.y + north}) for pose in poses]
+        notes.append(
+            f"poses in a local frame placed at E {east} N {north} of {crs} (axes along grid east/north)"
+        )
+    if crs != LOCAL_CRS:
+        _check_absolute_utm(Path(poses_path), poses, placed=shift is not None)
     inputs = CalibrationInputs(
         rsu_id=OFFLINE_RSU_ID,
         camera_id=camera_id,
@@ -206,14 +236,36 @@ def _checked_crs(crs: str, source: str) -> str:
     return normalised
 
 
-def _check_absolute_utm(path: Path, poses: Sequence[VehiclePose]) -> None:
+def _parsed_origin(text: str) -> tuple[float, float]:
+    """'E,N' (metres in the UTM zone of --crs) -> (E, N)."""
+    parts = text.split(",")
+    try:
+        values = [float(part) for part in parts]
+    except ValueError:
+        values = []
+    if len(values) != 2 or not all(math.isfinite(v) for v in values):
+        raise InputError(
+            "--origin", f"{text!r} is not E,N: two finite numbers in metres, e.g. 572000,5361000"
+        )
+    east, north = values
+    for name, value, (low, high) in (("E", east, _UTM_EAST_RANGE_M), ("N", north, _UTM_NORTH_RANGE_M)):
+        if not low < value < high:
+            raise InputError(
+                "--origin", f"{name} = {value} is not a UTM coordinate ({low:.0f} < {name} < {high:.0f} m)"
+            )
+    return east, north
+
+
+def _check_absolute_utm(path: Path, poses: Sequence[VehiclePose], placed: bool = False) -> None:
     for pose in poses:
         for name, value, (low, high) in (("x", pose.x, _UTM_EAST_RANGE_M), ("y", pose.y, _UTM_NORTH_RANGE_M)):
             if not low < value < high:
+                where = " once placed at --origin" if placed else ""
                 raise InputError(
                     str(path),
-                    f"{pose.stamp_ns}.{name}: {value} is not a UTM coordinate (expected {low:.0f} < "
-                    f"{name} < {high:.0f} m); toolbox poses are absolute UTM, not a local frame",
+                    f"{pose.stamp_ns}.{name}: {value} is not a UTM coordinate{where} (expected {low:.0f} < "
+                    f"{name} < {high:.0f} m); for poses in a local metric frame use --frame local "
+                    "(or --origin E,N --crs EPSG:N to place the frame)",
                 )
 
 
@@ -344,8 +396,13 @@ def format_summary(result: CalibrationResult, written: Path | None = None) -> st
     position = result.camera_position
     if position is not None:
         east, north, height = position.utm
-        lines.append(f"position     {result.frame.crs} E {east:.3f} N {north:.3f} h {height:.3f} m")
-        lines.append(f"             lat {position.lat:.7f} lon {position.lon:.7f} alt {position.alt:.3f} m")
+        if position.lat is not None and position.lon is not None and position.alt is not None:
+            lines.append(f"position     {result.frame.crs} E {east:.3f} N {north:.3f} h {height:.3f} m")
+            lines.append(
+                f"             lat {position.lat:.7f} lon {position.lon:.7f} alt {position.alt:.3f} m"
+            )
+        else:
+            lines.append(f"position     local frame x {east:.3f} y {north:.3f} z {height:.3f} m (no lat/lon)")
     quality = result.quality
     if quality is not None:
         # Labels say what the figures are measured on: rsucal evaluate scores other boxes against the true

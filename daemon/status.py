@@ -261,7 +261,10 @@ def _camera_row(
     position = accuracy = "-"
     if result is not None and result.camera_position is not None:
         where = result.camera_position
-        position = f"{where.lat:.6f}, {where.lon:.6f}, {where.alt:.1f} m"
+        if where.lat is not None and where.lon is not None and where.alt is not None:
+            position = f"{where.lat:.6f}, {where.lon:.6f}, {where.alt:.1f} m"
+        else:  # a result in a local frame (never the daemon's own, which are UTM)
+            position = f"{result.frame.crs} {where.utm[0]:.1f}, {where.utm[1]:.1f}, {where.utm[2]:.1f} m"
     if result is not None and result.uncertainty is not None:
         accuracy = f"±{result.uncertainty.position_std_m:.2f} m, ±{result.uncertainty.rotation_std_deg:.2f}°"
     row = [

@@ -52,7 +52,7 @@ from pipeline.refinement import (
 from pipeline.tracking import TrackingParams, frames_from_detections, track_boxes
 from pipeline.validation import ValidationEvidence, ValidationGates, count_traversals, validate
 from pipeline.vehicle import body_points_to_world, footprint_corners
-from schemas.common import CameraIntrinsics, LocalOrigin, VehicleProfile
+from schemas.common import LOCAL_CRS, CameraIntrinsics, LocalOrigin, VehicleProfile
 from schemas.messages import DetectionFrame, VehiclePose
 from schemas.results import (
     SCHEMA_VERSION,
@@ -76,7 +76,8 @@ ProgressCallback = Callable[[str, float], None]
 
 @dataclass(frozen=True, slots=True)
 class CalibrationInputs:
-    """Everything one calibration job needs; poses in absolute UTM of `crs`, stamps in their own clocks."""
+    """Everything one calibration job needs; poses in absolute UTM of `crs` (or, for crs LOCAL_CRS, in a local
+    metric frame), stamps in their own clocks."""
 
     rsu_id: str
     camera_id: str
@@ -805,8 +806,10 @@ def _result(
     t = refined.t_cam_from_local
     centre_local = refined.camera_center
     centre_utm = centre_local + np.array([origin.x, origin.y, origin.z])
-    utm = UtmFrame(inputs.crs)
-    lat, lon = utm.to_wgs84(np.array([centre_utm[0]]), np.array([centre_utm[1]]))
+    lat = lon = alt = None
+    if inputs.crs != LOCAL_CRS:  # a local metric frame has no geographic position
+        lats, lons = UtmFrame(inputs.crs).to_wgs84(np.array([centre_utm[0]]), np.array([centre_utm[1]]))
+        lat, lon, alt = float(lats[0]), float(lons[0]), float(centre_utm[2])
     summary = chosen.metrics
     quality = Quality(
         delta_p_mean_m=_finite(summary.delta_p_mean_m),
@@ -841,9 +844,9 @@ def _result(
         t=(float(t[0]), float(t[1]), float(t[2])),
         camera_position=CameraPosition(
             utm=(float(centre_utm[0]), float(centre_utm[1]), float(centre_utm[2])),
-            lat=float(lat[0]),
-            lon=float(lon[0]),
-            alt=float(centre_utm[2]),
+            lat=lat,
+            lon=lon,
+            alt=alt,
         ),
         orientation_wxyz=tuple(float(v) for v in quaternion_wxyz_from_rotation(R.T)),
         intrinsics=inputs.intrinsics,

@@ -79,10 +79,16 @@ class VehicleProfile(StrictModel):
     imu_offset: Vec3 = Field(description="pose reference point [x, y, z] in the vehicle box frame, m")
 
 
-class LocalOrigin(StrictModel):
-    """The UTM point subtracted inside the pipeline for numerical stability (DESIGN: frames)."""
+# A world frame is a UTM zone named by its EPSG code, or LOCAL_CRS: the poses' own local metric frame
+# (`rsucal calibrate --frame local`), which has no geographic position.
+LOCAL_CRS = "local"
+CRS_PATTERN = r"^(EPSG:\d{4,5}|local)$"
 
-    crs: str = Field(pattern=r"^EPSG:\d{4,5}$", description="e.g. EPSG:32632")
+
+class LocalOrigin(StrictModel):
+    """The world point subtracted inside the pipeline for numerical stability (docs/design.md: frames)."""
+
+    crs: str = Field(pattern=CRS_PATTERN, description="e.g. EPSG:32632, or 'local'")
     x: Finite
     y: Finite
     z: Finite = 0.0

@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from schemas.common import (
+    CRS_PATTERN,
     CameraIntrinsics,
     Finite,
     Identifier,
@@ -29,19 +30,21 @@ Covariance6 = tuple[
 
 
 class ReferenceFrame(StrictModel):
-    """The frame R, t refer to: UTM (crs) minus `origin` (m)."""
+    """The frame R, t refer to: the world frame (crs: a UTM zone, or 'local' for the poses' own metric
+    frame) minus `origin` (m)."""
 
-    crs: str = Field(pattern=r"^EPSG:\d{4,5}$")
+    crs: str = Field(pattern=CRS_PATTERN)
     origin: Vec3
 
 
 class CameraPosition(StrictModel):
-    """Camera centre in absolute UTM (m) and WGS84 (deg, ellipsoidal height m)."""
+    """Camera centre in absolute world coordinates (m: UTM, or the local frame's own for crs 'local') and
+    WGS84 (deg, ellipsoidal height m; None in a local frame, which has no geographic position)."""
 
     utm: Vec3
-    lat: float = Field(ge=-90.0, le=90.0, allow_inf_nan=False)
-    lon: float = Field(ge=-180.0, le=180.0, allow_inf_nan=False)
-    alt: Finite
+    lat: float | None = Field(default=None, ge=-90.0, le=90.0, allow_inf_nan=False)
+    lon: float | None = Field(default=None, ge=-180.0, le=180.0, allow_inf_nan=False)
+    alt: Finite | None = None
 
 
 class GroundPlane(StrictModel):

@@ -259,3 +259,103 @@ def test_help_states_the_yaml_default_crs(capsys: pytest.CaptureFixture[str]) ->
         cli.main(["calibrate", "--help"])
     assert exited.value.code == 0
     assert f"YAML default: {offline.DEFAULT_YAML_CRS}" in " ".join(capsys.readouterr().out.split())
+
+
+# ------------------------------------------------------------------------------------------ local frames
+
+# Where the local frame's origin sits in the scene's UTM zone: whole metres, as a site survey gives it.
+LOCAL_ORIGIN_EN = (456_400.0, 5_428_700.0)
+
+
+@pytest.fixture(scope="module")
+def local_poses(carla: Scene) -> Path:
+    """The scene's poses.yaml moved into a local metric frame (x, y of metres around the site), as the
+    reference toolbox publishes its real track."""
+    from pipeline.loaders import format_toolbox_poses
+
+    east, north = LOCAL_ORIGIN_EN
+    poses = [
+        pose.model_copy(update={"x": pose.x - east, "y": pose.y - north})
+        for pose in load_toolbox_poses(carla.dir / "poses.yaml")
+    ]
+    assert all(abs(pose.x) < 5_000.0 and abs(pose.y) < 5_000.0 for pose in poses)
+    path = carla.dir / "poses_local.yaml"
+    path.write_text(format_toolbox_poses(poses))
+    return path
+
+
+def _local_args(carla: Scene, local_poses: Path, *extra: str) -> list[str]:
+    return [
+        *carla.common(),
+        *("--detections", *carla.files("detections.yaml"), "--poses", str(local_poses)),
+        *("--camera-id", "carla"),
+        *extra,
+    ]
+
+
+def test_local_poses_without_an_option_name_the_local_frame_option(
+    carla: Scene, local_poses: Path, tmp_path: Path
+) -> None:
+    run = _rsucal(_local_args(carla, local_poses), tmp_path / "out.json")
+    _bad_input(run, str(local_poses), "not a UTM coordinate", "--frame local", "--origin E,N --crs EPSG:N")
+
+
+def test_frame_local_calibrates_in_the_poses_frame_without_lat_lon(
+    carla: Scene, local_poses: Path, yaml_run: Run, tmp_path: Path
+) -> None:
+    run = _rsucal(_local_args(carla, local_poses, "--frame", "local"), tmp_path / "local.json")
+    assert run.code == cli.EXIT_OK, run.stdout + run.stderr
+    local = load_calibration_result(run.out)
+    utm = load_calibration_result(yaml_run.out)
+    assert local.frame.crs == "local"
+    assert local.camera_position is not None and utm.camera_position is not None
+    assert (local.camera_position.lat, local.camera_position.lon, local.camera_position.alt) == (None,) * 3
+    assert "no lat/lon" in run.stdout
+    # The same camera, in the local frame: the UTM result's position minus the frame's origin, and the
+    # same rotation (the frames differ by a translation). The poses were re-rounded to 1 mm after the
+    # shift, hence a tolerance of the YAML pair's rounding (see test_yaml_pair_gives_the_mcaps_result...).
+    east, north = LOCAL_ORIGIN_EN
+    shifted = np.subtract(utm.camera_position.utm, (east, north, 0.0))
+    assert np.linalg.norm(np.subtract(local.camera_position.utm, shifted)) < 1e-3
+    assert local.R is not None and utm.R is not None
+    assert math.degrees(rotation_angle_rad(np.array(local.R), np.array(utm.R))) < 1e-3
+
+
+def test_origin_places_the_local_frame_in_utm_with_lat_lon(
+    carla: Scene, local_poses: Path, yaml_run: Run, tmp_path: Path
+) -> None:
+    east, north = LOCAL_ORIGIN_EN
+    args = _local_args(carla, local_poses, "--origin", f"{east:.0f},{north:.0f}", "--crs", "EPSG:32632")
+    run = _rsucal(args, tmp_path / "placed.json")
+    assert run.code == cli.EXIT_OK, run.stdout + run.stderr
+    placed = load_calibration_result(run.out)
+    utm = load_calibration_result(yaml_run.out)
+    assert placed.frame.crs == "EPSG:32632"
+    assert placed.frame == utm.frame  # the same median origin: the frames differ by whole metres
+    angle, shift_t, shift_c = _pose_difference(placed, utm)
+    assert placed.camera_position is not None and utm.camera_position is not None
+    assert np.linalg.norm(np.subtract(placed.camera_position.utm, utm.camera_position.utm)) < 1e-3
+    assert placed.camera_position.lat is not None and utm.camera_position.lat is not None
+    assert abs(placed.camera_position.lat - utm.camera_position.lat) < 1e-7
+    assert angle < 1e-3 and shift_t < 1e-3 and shift_c < 1e-3
+
+
+@pytest.mark.parametrize(
+    ("extra", "names"),
+    [
+        (("--origin", "456400,5428700"), ("--origin", "--crs EPSG:N")),
+        (("--origin", "456400", "--crs", "EPSG:32632"), ("--origin", "E,N")),
+        (("--origin", "nan,5428700", "--crs", "EPSG:32632"), ("--origin",)),
+        (("--origin", "13,14", "--crs", "EPSG:32632"), ("--origin", "not a UTM coordinate")),
+        (("--frame", "local", "--crs", "EPSG:32632"), ("--crs", "--origin")),
+    ],
+)
+def test_bad_local_frame_options_are_refused_by_name(
+    carla: Scene, local_poses: Path, tmp_path: Path, extra: tuple[str, ...], names: tuple[str, ...]
+) -> None:
+    _bad_input(_rsucal(_local_args(carla, local_poses, *extra), tmp_path / "out.json"), *names)
+
+
+def test_a_local_frame_does_not_apply_to_a_recording(carla: Scene, tmp_path: Path) -> None:
+    args = [*carla.common(), "--mcap", *carla.files("recording.mcap"), "--frame", "local"]
+    _bad_input(_rsucal(args, tmp_path / "out.json"), "--frame", "WGS84")

@@ -229,6 +229,10 @@ def command_line(draw: st.DrawFn) -> tuple[list[str], bool]:
             option("--station-id", ("4242",), HOSTILE_NUMBERS),
             option("--crs", ("EPSG:32632", "epsg:32633"), ("EPSG:4326", "EPSG:99999", "EPSG:", "utm", "")),
             option("--time-offset-ns", ("0", "-50000000"), HOSTILE_NUMBERS),
+            option("--frame", ("utm", "local"), HOSTILE_WORDS),
+            option(
+                "--origin", ("456400,5428700",), ("1,2", "1,2,3", ",", "nan,1", "1e400,5", *HOSTILE_WORDS)
+            ),
             option("--seed", seeds, HOSTILE_NUMBERS),
             option("--workers", ("1",), HOSTILE_NUMBERS),
             flag("--verbose"),
