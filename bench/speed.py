@@ -2,6 +2,11 @@
 Not part of the test suite.
 
     python -m bench.speed [--preset long] [--seed 0] [--repeat 3]
+    python -m bench.speed --cli [--preset long] [--repeat 5] [--pair DIR] [--compare 'CMD {poses} ...']
+
+--cli measures the whole `rsucal calibrate` command on the reference toolbox's YAML pair instead (block
+style, written from the preset unless --pair gives real files), per part (imports, load, each stage) and
+side by side with --compare's command: see bench/cli_speed.py.
 
 The preset (default `long`: 15 min at 10 fps, 300 other vehicles) is simulated once, in a child process, and
 written as the daemon would have recorded it (daemon.recording.write_simulation_mcap) to a temporary
@@ -170,9 +175,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--camera", help="camera id (default: the preset's first camera)")
+    parser.add_argument(
+        "--cli", action="store_true", help="whole `rsucal calibrate` on the toolbox YAML pair"
+    )
+    parser.add_argument("--pair", type=Path, help="--cli: a directory with the toolbox files to use instead")
+    parser.add_argument(
+        "--compare", help="--cli: time this command too ({camera} {vehicle} {detections} {poses} {out})"
+    )
+    parser.add_argument("--instrumented", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--prepare", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--measure", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.instrumented:
+        from bench.cli_speed import instrumented_main
+
+        return instrumented_main(args.instrumented)
+    if args.cli:
+        from bench.cli_speed import cli_main
+
+        return cli_main(args.preset, args.seed, args.repeat, args.pair, args.compare)
     if args.prepare:
         return prepare_main(args.prepare, args.preset, args.seed, args.camera)
     if args.measure:
