@@ -178,12 +178,15 @@ def _multipath(t_s: FloatArray, spec: GnssSpec, rng: np.random.Generator) -> Flo
     directions = rng.uniform(-math.pi, math.pi, count)
     # Reflections lengthen the path along the line of sight, so the vertical moves as well, by more.
     vertical = rng.standard_normal(count) * magnitudes * spec.vertical_factor / math.sqrt(2.0)
-    for onset, magnitude, direction, dz in zip(onsets, magnitudes, directions, vertical, strict=True):
-        after = t_s >= onset
-        decay = np.exp(-(t_s[after] - onset) / spec.multipath_decay_s)
-        out[after] += decay[:, None] * np.array(
-            [magnitude * math.cos(direction), magnitude * math.sin(direction), dz]
-        )
+    # Each offset is cut after 10 decay constants (e^-10: below 0.03 mm of a 0.5 m jump).
+    first = np.searchsorted(t_s, onsets)
+    last = np.searchsorted(t_s, onsets + 10.0 * spec.multipath_decay_s)
+    for k in range(count):
+        span = slice(first[k], last[k])
+        decay = np.exp(-(t_s[span] - onsets[k]) / spec.multipath_decay_s)
+        jump = magnitudes[k] * np.array([math.cos(directions[k]), math.sin(directions[k]), 0.0])
+        jump[2] = vertical[k]
+        out[span] += decay[:, None] * jump
     return out
 
 
@@ -200,7 +203,7 @@ def _float_envelope(t_s: FloatArray, start_s: float, duration_s: float, ramp_s: 
 def _rtk_float(t_s: FloatArray, spec: GnssSpec, rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
     """Float-period error (N, 3) and the envelope (N,) (0 = fixed, > 0 = float). One period per equal
     slot of the run, so periods never overlap; the horizontal error's magnitude is a drawn level in
-    rtk_float_sigma_m, its direction drifts slowly (the float filter wanders as it converges)."""
+    rtk_float_sigma_m, its direction turns slowly (the float filter wanders as it converges)."""
     n = t_s.shape[0]
     error = np.zeros((n, 3))
     envelope = np.zeros(n)
@@ -213,8 +216,8 @@ def _rtk_float(t_s: FloatArray, spec: GnssSpec, rng: np.random.Generator) -> tup
         start_s = float(t_s[0]) + slot * slot_s + rng.uniform(0.0, slot_s - duration_s)
         level_m = rng.uniform(*spec.rtk_float_sigma_m)
         shape = _float_envelope(t_s, start_s, duration_s, spec.rtk_float_ramp_s)
-        # Direction: a random start plus a Gauss-Markov drift of ~0.5 rad over ~20 s.
-        direction = rng.uniform(-math.pi, math.pi) + _gauss_markov(t_s, 0.5, 20.0, 1, rng)[:, 0]
+        # Direction: a random start turning at up to 0.02 rad/s (up to ~1 rad over a 40 s period).
+        direction = rng.uniform(-math.pi, math.pi) + rng.uniform(-0.02, 0.02) * (t_s - start_s)
         dz = rng.uniform(-1.0, 1.0) * level_m * spec.vertical_factor / math.sqrt(2.0)
         error[:, 0] += shape * level_m * np.cos(direction)
         error[:, 1] += shape * level_m * np.sin(direction)
