@@ -216,6 +216,9 @@ def test_gauss_markov_wander_has_the_spec_variance_and_time_constant() -> None:
     assert abs(phi_hat - phi) < 4 * math.sqrt((1 - phi**2) / x0.size)
     tau_hat = -1.0 / math.log(phi_hat)
     assert 0.9 * tau < tau_hat < 1.1 * tau
+    # Innovations keep the process stationary: std(e) = sigma sqrt(1 - phi^2), relative SE 1/sqrt(2 * 2N).
+    innovation = x1 - phi_hat * x0
+    assert innovation.std() == pytest.approx(sigma * math.sqrt(1 - phi**2), rel=4 / math.sqrt(2 * x0.size))
     # The random-walk equivalent at short lags: var(x_k+1 - x_k) = 2 sigma^2 (1 - phi) ~ q^2 dt.
     assert spec.random_walk_m_per_sqrt_s == pytest.approx(sigma * math.sqrt(2 / tau))
 
