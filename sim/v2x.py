@@ -69,6 +69,9 @@ class GnssSpec:
     heading_sigma_deg: float = 0.3
     velocity_sigma_mps: float = 0.05
     course_hold_speed_mps: float = 1.0
+    # The receiver's navigation filter smooths velocity, so the course error is correlated over about a
+    # second (first-order Gauss-Markov); white 10 Hz course noise would flicker more than receivers do.
+    course_noise_tau_s: float = 1.0
     # Odometry (wheel speed): per-run scale error std (tyre wear and pressure, ~0.5-1 %) and white noise.
     speed_scale_error: float = 0.007
     speed_sigma_mps: float = 0.03
@@ -268,7 +271,12 @@ def measure_gnss(
     ground_speed = true_speed_mps + rng.standard_normal(n) * spec.velocity_sigma_mps
     with np.errstate(divide="ignore", invalid="ignore"):
         course_sigma = np.hypot(math.radians(spec.heading_sigma_deg), spec.velocity_sigma_mps / ground_speed)
-    course = true_yaw + rng.standard_normal(n) * np.where(np.isfinite(course_sigma), course_sigma, 0.0)
+    course_noise = (
+        _gauss_markov(t_s, 1.0, spec.course_noise_tau_s, 1, rng)[:, 0]
+        if spec.course_noise_tau_s > 0.0
+        else rng.standard_normal(n)
+    )
+    course = true_yaw + course_noise * np.where(np.isfinite(course_sigma), course_sigma, 0.0)
     is_course_valid = ground_speed >= spec.course_hold_speed_mps
     last_valid = np.maximum.accumulate(np.where(is_course_valid, np.arange(n), -1))
     yaw = np.where(last_valid >= 0, course[np.maximum(last_valid, 0)], true_yaw[0])

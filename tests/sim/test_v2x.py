@@ -285,21 +285,27 @@ def test_rtk_float_periods_have_0_3_to_1_m_errors_and_report_a_large_std() -> No
 
 
 def test_course_noise_grows_as_speed_drops_and_is_held_below_the_threshold() -> None:
-    spec = only(heading_sigma_deg=0.3, velocity_sigma_mps=0.05, course_hold_speed_mps=1.0)
-    t = np.round(np.arange(0.0, 600.0, DT_S), 9)
+    spec = only(
+        heading_sigma_deg=0.3, velocity_sigma_mps=0.05, course_hold_speed_mps=1.0, course_noise_tau_s=1.0
+    )
+    t = np.round(np.arange(0.0, 6000.0, DT_S), 9)
     n = len(t)
-    # 10 m/s, then 0.3 m/s (crawling, the true yaw still turning), then 2 m/s.
-    speed = np.where(t < 200, 10.0, np.where(t < 400, 0.3, 2.0))
-    yaw = np.where((t >= 200) & (t < 400), 0.01 * (t - 200), 0.0)
+    # 10 m/s, then 0.3 m/s (crawling, the true yaw still turning), then 2 m/s; 2000 s each.
+    speed = np.where(t < 2000, 10.0, np.where(t < 4000, 0.3, 2.0))
+    yaw = np.where((t >= 2000) & (t < 4000), 0.001 * (t - 2000), 0.0)
     track = measure_gnss(t, np.zeros((n, 3)), yaw, speed, spec, np.random.default_rng(8))
     slow = speed == 0.3
-    last_fast = np.flatnonzero(t < 200)[-1]
+    last_fast = np.flatnonzero(t < 2000)[-1]
     assert np.all(track.yaw[slow] == track.yaw[last_fast])
-    # sigma = hypot(0.3 deg, 0.05 / v rad): 0.41 deg at 10 m/s, 1.46 deg at 2 m/s; 2000 fixes each,
-    # relative SE of the std 1/sqrt(2n) = 1.6 %, 4 SE = 6.3 % (v itself carries 0.5-2.5 % noise).
+    # sigma = hypot(0.3 deg, 0.05 / v rad): 0.41 deg at 10 m/s, 1.46 deg at 2 m/s. The noise is AR(1)
+    # with phi = exp(-0.1 / 1.0): 20000 fixes hold N (1 - phi^2) / (1 + phi^2) ~ 2000 independent ones,
+    # relative SE of the std 1/sqrt(2 * 2000) = 1.6 %, 4 SE = 6.3 % (v itself carries 0.5-2.5 % noise).
     for v in (10.0, 2.0):
         expected = math.hypot(math.radians(0.3), 0.05 / v)
         assert np.std(track.yaw[speed == v] - yaw[speed == v]) == pytest.approx(expected, rel=0.07)
+    # Correlated over ~1 s: the lag-1 correlation at 10 Hz is exp(-0.1) = 0.905.
+    noise = track.yaw[speed == 10.0] - yaw[speed == 10.0]
+    assert np.corrcoef(noise[:-1], noise[1:])[0, 1] == pytest.approx(math.exp(-0.1), abs=0.02)
 
 
 def test_odometry_speed_has_a_per_run_scale_error_and_reads_zero_at_rest() -> None:
