@@ -76,10 +76,21 @@ class GnssSpec:
     speed_scale_error: float = 0.007
     speed_sigma_mps: float = 0.03
 
+    def __post_init__(self) -> None:
+        for name in ("fix_rate_hz", "wander_tau_s", "multipath_decay_s", "vertical_factor"):
+            if not getattr(self, name) > 0.0:
+                raise SimulationError(name, f"{getattr(self, name)} must be > 0")
+        for name in ("multipath_jump_m", "rtk_float_duration_s", "rtk_float_sigma_m"):
+            low, high = getattr(self, name)
+            if not 0.0 <= low <= high:
+                raise SimulationError(name, f"({low}, {high}) is not a range 0 <= low <= high")
+        if self.rtk_float_periods < 0:
+            raise SimulationError("rtk_float_periods", f"{self.rtk_float_periods} < 0")
+
     @property
     def random_walk_m_per_sqrt_s(self) -> float:
         """Short-term diffusion of the Gauss-Markov wander (its random-walk equivalent at lags << tau)."""
-        return self.wander_sigma_m * math.sqrt(2.0 / self.wander_tau_s) if self.wander_tau_s > 0 else 0.0
+        return self.wander_sigma_m * math.sqrt(2.0 / self.wander_tau_s)
 
     @classmethod
     def rtk_fixed(cls) -> GnssSpec:

@@ -140,7 +140,7 @@ def test_generated_rate_stays_between_1_and_10_hz_on_a_noisy_city_drive(fix_rate
         assert np.allclose(np.round(track.t_s[idx] / 0.1), track.t_s[idx] / 0.1, atol=1e-6)
 
 
-def test_bad_cam_inputs_are_named() -> None:
+def test_bad_inputs_are_named() -> None:
     t, position, yaw, speed = straight(5.0, 2.0)
     with pytest.raises(SimulationError, match="position"):
         cam_generation(t, position[:, :2], yaw, speed, CamSpec())
@@ -148,6 +148,10 @@ def test_bad_cam_inputs_are_named() -> None:
         cam_generation(t[::-1].copy(), position, yaw, speed, CamSpec())
     with pytest.raises(SimulationError, match="t_gen_cam_dcc_s"):
         CamSpec(t_gen_cam_dcc_s=0.05)
+    with pytest.raises(SimulationError, match="rtk_float_sigma_m"):
+        GnssSpec(rtk_float_sigma_m=(1.0, 0.3))
+    with pytest.raises(SimulationError, match="speed_mps"):
+        measure_gnss(t, position, yaw, speed[:-1], GnssSpec(), np.random.default_rng(0))
 
 
 # ---------------------------------------------------------------- GNSS error model
