@@ -10,7 +10,6 @@ L x W x H (mirrors and roof box excluded) it fills; `cuboid_body` is the `ideal`
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass, field
 from typing import TypeAlias
@@ -96,7 +95,7 @@ _SEDAN: dict[str, Range] = {
     "windscreen_rake_deg": (58.0, 66.0),  # windscreens of cars lean 24-32 deg from the horizontal
     "rear_window_rake_deg": (55.0, 68.0),
     "cabin_inset_m": (0.06, 0.12),  # greenhouse base inside the body side (shoulder), per side
-    "tumblehome_deg": (18.0, 28.0),  # side glass inclination: roof 1.25-1.40 m wide on a 1.8 m body
+    "tumblehome_deg": (15.0, 25.0),  # side glass inclination: roof 1.20-1.40 m wide on a 1.8 m body
     "roof_round_m": (0.03, 0.06),  # roof crown: the roof edge lies this far below H and inside the roof
     "sill_inset_m": (0.04, 0.09),  # rocker panel inside the widest point (door shoulder)
     "shoulder_inset_m": (0.01, 0.04),  # belt line inside the widest point
@@ -357,6 +356,16 @@ _WHEEL_SIDES = 8
 # Rings of the lower body closer than this in height are merged (m).
 _MERGE_DZ_M = 0.02
 _MIN_RADIUS_M = 0.01
+# A ring's corner arcs: rear-right (from pointing -x to -y), front-right, front-left, rear-left.
+_RING_ANGLES = np.concatenate(
+    [
+        start + np.linspace(0.0, 0.5 * math.pi, _ARC_POINTS)
+        for start in (math.pi, 1.5 * math.pi, 0.0, 0.5 * math.pi)
+    ]
+)
+_RING_COS, _RING_SIN = np.cos(_RING_ANGLES), np.sin(_RING_ANGLES)
+_RING_FRONT = np.repeat([False, True, True, False], _ARC_POINTS)
+_RING_LEFT = np.repeat([False, False, True, True], _ARC_POINTS)
 
 
 @dataclass(frozen=True, eq=False)
@@ -467,17 +476,21 @@ class _Mesh:
         n = len(rings[0])
         start = self._count
         index = start + np.arange(len(rings) * n).reshape(len(rings), n)
-        faces = []
-        for lower, upper in itertools.pairwise(index):
-            a, b = lower, np.roll(lower, -1)
-            c, d = np.roll(upper, -1), upper
-            faces += [np.column_stack([a, b, c]), np.column_stack([a, c, d])]
-        first, last = index[0], index[-1]
+        lower, upper = index[:-1], index[1:]
+        lower_next, upper_next = np.roll(lower, -1, axis=1), np.roll(upper, -1, axis=1)
+        sides = np.concatenate(
+            [
+                np.stack([lower, lower_next, upper_next], axis=-1),
+                np.stack([lower, upper_next, upper], axis=-1),
+            ],
+            axis=1,
+        ).reshape(-1, 3)
         fan = np.arange(1, n - 1)
-        faces.append(np.column_stack([np.full(n - 2, first[0]), first[fan + 1], first[fan]]))
-        faces.append(np.column_stack([np.full(n - 2, last[0]), last[fan], last[fan + 1]]))
+        first, last = index[0], index[-1]
+        bottom = np.column_stack([np.full(n - 2, first[0]), first[fan + 1], first[fan]])
+        top = np.column_stack([np.full(n - 2, last[0]), last[fan], last[fan + 1]])
         self._vertices += rings
-        self._faces += [np.asarray(f, dtype=np.int64) for f in faces]
+        self._faces.append(np.concatenate([sides, bottom, top]).astype(np.int64))
         self._count += len(rings) * n
         self.parts[part] = (start, self._count)
 
@@ -493,27 +506,16 @@ def _rounded_ring(
 ) -> FloatArray:
     """Plan-view rounded rectangle at height z: x in [x0, x1], y in y_mid +- half_w, rear corners of radius
     r0, front corners r1; (4 * _ARC_POINTS, 3) counter-clockwise from above, from the rear-right corner."""
-    r0 = float(np.clip(r0, _MIN_RADIUS_M, min(0.49 * (x1 - x0), 0.99 * half_w)))
-    r1 = float(np.clip(r1, _MIN_RADIUS_M, min(0.49 * (x1 - x0), 0.99 * half_w)))
+    r_max = min(0.49 * (x1 - x0), 0.99 * half_w)
+    r0 = min(max(r0, _MIN_RADIUS_M), r_max)
+    r1 = min(max(r1, _MIN_RADIUS_M), r_max)
     y0, y1 = y_mid - half_w, y_mid + half_w
-    corners = (  # (centre x, centre y, radius, start angle): rear-right, front-right, front-left, rear-left
-        (x0 + r0, y0 + r0, r0, math.pi),
-        (x1 - r1, y0 + r1, r1, 1.5 * math.pi),
-        (x1 - r1, y1 - r1, r1, 0.0),
-        (x0 + r0, y1 - r0, r0, 0.5 * math.pi),
-    )
-    points = []
-    for cx, cy, r, start in corners:
-        angle = start + np.linspace(0.0, 0.5 * math.pi, _ARC_POINTS)
-        points.append(
-            np.column_stack([cx + r * np.cos(angle), cy + r * np.sin(angle), np.full(_ARC_POINTS, z)])
-        )
-    ring = np.concatenate(points)
+    r = np.where(_RING_FRONT, r1, r0)
+    x = np.where(_RING_FRONT, x1 - r1, x0 + r0) + r * _RING_COS
+    y = np.where(_RING_LEFT, y1 - r, y0 + r) + r * _RING_SIN
     # Snap the arcs' ends onto the rectangle's sides: cos(3 pi / 2) is -1.8e-16, not 0, and the body must
     # touch its data-sheet box exactly.
-    ring[:, 0] = np.clip(ring[:, 0], x0, x1)
-    ring[:, 1] = np.clip(ring[:, 1], y0, y1)
-    return np.asarray(ring, dtype=np.float64)
+    return np.column_stack([np.clip(x, x0, x1), np.clip(y, y0, y1), np.full(len(x), z)])
 
 
 def _box_ring(z: float, x0: float, x1: float, y0: float, y1: float) -> FloatArray:
@@ -586,12 +588,16 @@ def _monocoque_rings(p: dict[str, float], span: _Span) -> list[FloatArray]:
     half = [(clearance, hw - p["sill_inset_m"]), (z_widest, hw), (belt, hw - p["shoulder_inset_m"])]
     r_front = [(clearance, p["front_radius_m"]), (belt, p["cabin_front_radius_m"])]
     r_rear = [(z_widest_rear, p["rear_radius_m"]), (belt, p["cabin_rear_radius_m"])]
-    levels = sorted({z for z, _ in front} | {z for z, _ in rear} | {z_widest})
-    merged = [levels[0]]
-    for z in levels[1:]:
-        if z - merged[-1] >= _MERGE_DZ_M:
-            merged.append(z)
-    merged[-1] = belt
+    # The levels where the body touches its data-sheet box (length at the bumpers, width at the shoulder),
+    # the sill and the belt are kept; other breakpoints closer than _MERGE_DZ_M to a kept level are dropped.
+    kept = {clearance, p["front_bumper_m"], z_widest, belt} | (
+        {p["rear_bumper_m"]} if not span.flat_rear else set()
+    )
+    others = sorted(({z for z, _ in front} | {z for z, _ in rear}) - kept)
+    merged = sorted(kept)
+    for z in others:
+        if min(abs(z - k) for k in merged) >= _MERGE_DZ_M:
+            merged = sorted([*merged, z])
     rings = [
         _rounded_ring(
             z,
