@@ -93,7 +93,7 @@ _SEDAN: dict[str, Range] = {
     "deck_frac": (0.18, 0.23),  # rear face to rear-window base (sedan boot)
     "deck_round_m": (0.05, 0.15),  # boot-lid edge behind the rear face
     "windscreen_rake_deg": (58.0, 66.0),  # windscreens of cars lean 24-32 deg from the horizontal
-    "rear_window_rake_deg": (55.0, 68.0),
+    "rear_window_rake_deg": (50.0, 64.0),
     "cabin_inset_m": (0.06, 0.12),  # greenhouse base inside the body side (shoulder), per side
     "tumblehome_deg": (15.0, 25.0),  # side glass inclination: roof 1.20-1.40 m wide on a 1.8 m body
     "roof_round_m": (0.03, 0.06),  # roof crown: the roof edge lies this far below H and inside the roof
@@ -390,15 +390,38 @@ class BodyShape:
     parts: dict[str, tuple[int, int]] = field(default_factory=dict)
 
 
-def body_type_for_class(cls: int, rng: np.random.Generator) -> str:
-    """Body type of a vehicle of toolbox class `cls` (4 car, 5 truck, 6 van, 7 bus); cars by share."""
-    if cls == 4:
-        names = list(CAR_TYPE_SHARES)
-        shares = np.array([CAR_TYPE_SHARES[n] for n in names])
-        return names[int(rng.choice(len(names), p=shares / shares.sum()))]
+def body_type_for_class(
+    cls: int,
+    rng: np.random.Generator,
+    *,
+    length_m: float | None = None,
+    width_m: float | None = None,
+    height_m: float | None = None,
+) -> str:
+    """Body type of a vehicle of toolbox class `cls` (4 car, 5 truck, 6 van, 7 bus); cars by share, among
+    the car types whose data-sheet ranges (with DIMENSION_TOLERANCE) admit the given dimensions (m)."""
     if cls in CLASS_BODY_TYPES:
         return CLASS_BODY_TYPES[cls]
-    raise SimulationError("cls", f"{cls!r} is not a toolbox vehicle class (4 car, 5 truck, 6 van, 7 bus)")
+    if cls != 4:
+        raise SimulationError("cls", f"{cls!r} is not a toolbox vehicle class (4 car, 5 truck, 6 van, 7 bus)")
+    given = {"length_m": length_m, "width_m": width_m, "height_m": height_m}
+    names = [
+        name
+        for name in CAR_TYPE_SHARES
+        if all(value is None or _dimension_fits(name, dim, value) for dim, value in given.items())
+    ]
+    if not names:
+        dims = ", ".join(f"{dim} = {value!r}" for dim, value in given.items() if value is not None)
+        raise SimulationError("cls", f"4 (car): no car body type admits {dims}")
+    shares = np.array([CAR_TYPE_SHARES[n] for n in names])
+    return names[int(rng.choice(len(names), p=shares / shares.sum()))]
+
+
+def _dimension_fits(vehicle_type: str, dim: str, value: float) -> bool:
+    lo, hi = TYPE_RANGES[vehicle_type][dim]
+    return (
+        math.isfinite(value) and (1.0 - DIMENSION_TOLERANCE) * lo <= value <= (1.0 + DIMENSION_TOLERANCE) * hi
+    )
 
 
 def draw_body(

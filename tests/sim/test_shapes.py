@@ -53,8 +53,12 @@ def _signed_volume(vertices: FloatArray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
+# Drawn once: the bodies are immutable and every per-type test reads the same ones.
+BODIES = {t: [draw_body(t, np.random.default_rng(seed)) for seed in SEEDS] for t in VEHICLE_TYPES}
+
+
 def _bodies(vehicle_type: str) -> list[BodyShape]:
-    return [draw_body(vehicle_type, np.random.default_rng(seed)) for seed in SEEDS]
+    return BODIES[vehicle_type]
 
 
 @pytest.mark.parametrize("vehicle_type", VEHICLE_TYPES)
@@ -123,8 +127,7 @@ def test_every_part_is_a_closed_outward_facing_surface(vehicle_type: str) -> Non
 @pytest.mark.parametrize("vehicle_type", VEHICLE_TYPES)
 def test_bodies_are_clearly_smaller_than_their_box_and_rounded_at_the_corners(vehicle_type: str) -> None:
     ratios = []
-    for seed in SEEDS:
-        shape = draw_body(vehicle_type, np.random.default_rng(seed))
+    for shape in _bodies(vehicle_type):
         L, W, H = shape.length_m, shape.width_m, shape.height_m
         volume = sum(_signed_volume(shape.vertices, _faces_of(shape, n)) for n in SOLIDS if n in shape.parts)
         ratios.append(volume / (L * W * H))
@@ -143,8 +146,7 @@ def test_bodies_are_clearly_smaller_than_their_box_and_rounded_at_the_corners(ve
 
 def test_car_plan_corners_are_cut_by_their_radius() -> None:
     for vehicle_type in ("sedan", "hatchback", "estate", "suv"):
-        for seed in SEEDS:
-            shape = draw_body(vehicle_type, np.random.default_rng(seed))
+        for shape in _bodies(vehicle_type):
             solid = _solid(shape)
             L, W = shape.length_m, shape.width_m
             for corner in ((0.0, 0.0), (L, 0.0), (L, W), (0.0, W)):
@@ -326,6 +328,18 @@ def test_toolbox_classes_map_to_body_types_with_car_shares() -> None:
     assert set(counts) == set(CAR_TYPE_SHARES)
     for name, share in CAR_TYPE_SHARES.items():
         assert abs(counts[name] / 4000 - share) < 4.0 * math.sqrt(share * (1 - share) / 4000), name
+    # Given a data sheet, only the types that can have it: a 3.9 m car is no pickup, a 1.85 m tall no sedan.
+    small = Counter(
+        body_type_for_class(4, rng, length_m=3.9, width_m=1.75, height_m=1.45) for _ in range(300)
+    )
+    assert set(small) == {"sedan", "hatchback", "estate", "suv"}
+    tall = Counter(body_type_for_class(4, rng, length_m=4.6, height_m=1.85) for _ in range(300))
+    assert set(tall) == {"suv", "pickup"}
+    for cls in (4, 5, 6, 7):
+        vehicle_type = body_type_for_class(cls, rng, length_m=4.5)
+        assert vehicle_type == {5: "truck", 6: "van", 7: "bus"}.get(cls, vehicle_type)
+    with pytest.raises(SimulationError, match=r"cls: 4 \(car\): no car body type admits length_m = 9\.0"):
+        body_type_for_class(4, rng, length_m=9.0)
 
 
 def test_the_ideal_body_is_the_data_sheet_box() -> None:
