@@ -576,6 +576,7 @@ def _monocoque_rings(p: dict[str, float], span: _Span) -> list[FloatArray]:
     p["bonnet_front_m"] = min(p["bonnet_front_m"], belt - 0.05)
     p["front_bumper_m"] = min(p["front_bumper_m"], p["bonnet_front_m"] - 0.05)
     p["front_bumper_low_m"] = min(p["front_bumper_low_m"], p["front_bumper_m"] - 0.05)
+    p["deck_drop_m"] = max(p["deck_drop_m"], 0.01)  # the boot-lid edge and the belt are separate levels
     deck_edge = belt - p["deck_drop_m"]
     p["rear_bumper_m"] = min(p["rear_bumper_m"], deck_edge - 0.05)
     p["rear_bumper_low_m"] = min(p["rear_bumper_low_m"], p["rear_bumper_m"] - 0.05)
