@@ -286,8 +286,8 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
     site = config.site
     origin = LocalOrigin(crs=site.crs, x=site.east_m, y=site.north_m, z=site.alt_m)
     origin_vec = np.array([origin.x, origin.y, origin.z])
-    ground = GroundSurface.from_spec(config.ground)
     network = build_network(config.road)
+    ground = GroundSurface.from_spec(config.ground, network)
     occluders = build_occluders(config.occluders, ground)
     world = WorldGeometry(lane_polylines(network, ground), occluders, ground)
     profile = config.vehicle
