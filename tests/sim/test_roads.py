@@ -183,6 +183,20 @@ def test_bend_is_banked_toward_its_inside(fraction: float, across: float) -> Non
     assert z == pytest.approx(-BANK * lateral, abs=1e-6)
 
 
+def test_a_car_on_a_banked_bend_rolls_toward_the_inside() -> None:
+    """Outbound on the E arm's left bend (right lane, heading along the arc): the inside (left) side is
+    lower, so the roll is -atan(bank) whichever way the car drives; the pitch stays zero."""
+    surface = ground(BENT)
+    sweep = 0.5 * math.radians(30.0)
+    point, inward = _arc_point(100.0, 200.0, sweep, 1.0)
+    lane = BENT.lane_width_m / 2.0
+    xy = np.array([point - lane * inward, point + lane * inward])  # outbound right lane, inbound right lane
+    poses = surface_poses(xy, np.array([sweep, sweep + math.pi]), 4.8, 1.85, surface)
+    assert poses[0, 5] == pytest.approx(-math.atan(BANK), abs=2e-4)  # 2e-4: contacts on a curved lane
+    assert poses[1, 5] == pytest.approx(math.atan(BANK), abs=2e-4)  # inbound: the inside is to its right
+    np.testing.assert_allclose(poses[:, 4], 0.0, atol=2e-4)
+
+
 def test_right_bend_is_banked_toward_its_inside_and_runs_out_to_the_crown() -> None:
     surface = ground(BENT)
     # The W arm runs along -x: mirror the +x construction (a right bend seen from the arm stays a right bend).
