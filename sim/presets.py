@@ -62,11 +62,61 @@ class BumpSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class VerticalCurveSpec:
+    """A parabolic vertical curve on one arm: it starts `start_m` along the arm's centre line from the
+    junction centre, runs `length_m`, and changes the grade by `grade_change` (dimensionless, e.g. -0.04:
+    a crest; positive: a sag). The new grade then carries on to the arm's end and beyond."""
+
+    arm: str
+    start_m: float
+    length_m: float
+    grade_change: float
+
+
+@dataclass(frozen=True, slots=True)
 class GroundSpec:
-    """Ground z = slope . (x, y) + bumps (local frame)."""
+    """Terrain z = slope . (x, y) + bumps (local frame), with the roads built into it as they are.
+
+    The defaults are a real road (German RAL/RAS-L/RASt 06 and AASHTO Green Book figures): a 2 % crown
+    falling from each arm's centre line to its edges, 12 cm kerbs up to level footways and verges, 4 %
+    superelevation on the arms' bends (reached over `bank_transition_m`), kerb returns of 8 m radius at
+    the junction corners, whose area is flattened. `GroundSpec.flat()` is the old terrain alone (the
+    `ideal` world). Slopes are dimensionless (m/m), lengths metres."""
 
     slope: tuple[float, float] = (0.0, 0.0)
     bumps: tuple[BumpSpec, ...] = ()
+    # RAS-Q / RAA minimum cross slope 2.5 %, RASt 06 and AASHTO 1.5-2 % on urban streets: 2 % both ways.
+    crown_slope: float = 0.02
+    # RASt 06: kerb face 10-15 cm (lower at crossings); 12 cm is the common "Hochbord".
+    kerb_height_m: float = 0.12
+    # RASt 06 minimum footway 2.5 m; behind it the verge continues at footway height.
+    footway_width_m: float = 2.5
+    # Superelevation of the arms' bends, falling toward the inside (RAL: 2.5-6 % for R 200-400 m at
+    # 50-70 km/h; AASHTO e_max 4 % for urban roads).
+    bank_slope: float = 0.04
+    # Superelevation runoff: the carriageway revolves about its centre line from crown to bank over this
+    # length, 2/3 of it before the bend (AASHTO Green Book 3.3.8); RAS-L ramp gradients give 20-30 m.
+    bank_transition_m: float = 25.0
+    # RASt 06 kerb return (Eckausrundung) radii 6-12 m for cars and lorries turning; 8 m by default.
+    kerb_return_radius_m: float = 8.0
+    vertical_curves: tuple[VerticalCurveSpec, ...] = ()
+
+    @staticmethod
+    def flat(slope: tuple[float, float] = (0.0, 0.0), bumps: tuple[BumpSpec, ...] = ()) -> GroundSpec:
+        """The terrain alone, no road built into it: z = slope . (x, y) + bumps exactly (the old world)."""
+        return GroundSpec(
+            slope=slope, bumps=bumps, crown_slope=0.0, kerb_height_m=0.0, bank_slope=0.0, vertical_curves=()
+        )
+
+    @property
+    def is_flat(self) -> bool:
+        """No crown, kerb, bank or vertical curve: the ground is the terrain alone."""
+        return (
+            self.crown_slope == 0.0
+            and self.kerb_height_m == 0.0
+            and self.bank_slope == 0.0
+            and not self.vertical_curves
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -497,8 +497,8 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
     site = config.site
     origin = LocalOrigin(crs=site.crs, x=site.east_m, y=site.north_m, z=site.alt_m)
     origin_vec = np.array([origin.x, origin.y, origin.z])
-    ground = GroundSurface.from_spec(config.ground)
     network = build_network(config.road)
+    ground = GroundSurface.from_spec(config.ground, network)
     occluders = build_occluders(config.occluders, ground)
     world = WorldGeometry(lane_polylines(network, ground), occluders, ground)
     calib_shape, profile = _calibration_body(config, _real_rng(seed, 0))
