@@ -652,6 +652,31 @@ NIGHT = replace(
 SUV = replace(SIL_WEST, name="suv", bodies=BodySpec(calibration_types=("suv",)))
 VAN = replace(SIL_NORTH, name="van", bodies=BodySpec(calibration_types=("van",)))
 RTK_FLOAT = replace(SIL_SOUTH, name="rtk-float", v2x=V2xSpec(rtk_float=True))
+# A junction on a real road: a pronounced crown (2.5 %), banked bends (5 %), a crest on the west arm and a
+# sag on the south arm in front of the camera, on sloping terrain.
+CROWNED_ROAD = ScenarioConfig(
+    name="crowned-road",
+    site=ROSENHEIM,
+    road=SKEWED_JUNCTION,
+    ground=GroundSpec(
+        slope=(0.015, -0.01),
+        crown_slope=0.025,
+        bank_slope=0.05,
+        vertical_curves=(
+            VerticalCurveSpec("W", 25.0, 60.0, -0.05),
+            VerticalCurveSpec("S", 20.0, 50.0, 0.04),
+            VerticalCurveSpec("N", 40.0, 80.0, -0.03),
+        ),
+    ),
+    cameras=(
+        look_at(
+            "crowned", 14.0, -15.0, 10.0, (-8.0, 6.0), principal_offset_px=(2.0, -3.0), dist=REGULAR_DIST
+        ),
+    ),
+    drive=DriveSpec(routes=("W>E", "S>N", "N>W")),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+)
 # One junction camera, eight drive-pasts; after the fourth the camera is knocked: 0.6 deg, 0.4 m.
 MOVED_CAMERA = replace(
     SIL_NORTH,
@@ -722,6 +747,14 @@ def world_v2x_mode(config: ScenarioConfig) -> str:
     return "imu" if config.ideal else config.v2x.mode
 
 
+def world_ground(config: ScenarioConfig) -> GroundSpec:
+    """The ground: the preset's road (crown, kerbs, banks, vertical curves) in the real world, the terrain
+    alone (plane + bumps) in the ideal one."""
+    if config.ideal:
+        return GroundSpec.flat(config.ground.slope, config.ground.bumps)
+    return config.ground
+
+
 def ideal(config: ScenarioConfig) -> ScenarioConfig:
     """The same scene in the first simulator's world."""
     return replace(config, ideal=True)
@@ -753,6 +786,7 @@ PRESETS: dict[str, ScenarioConfig] = {
         SUV,
         VAN,
         RTK_FLOAT,
+        CROWNED_ROAD,
         MOVED_CAMERA,
     )
 }
