@@ -330,6 +330,17 @@ def _inside_hull(hull: FloatArray, points: FloatArray) -> Mask:
     return np.asarray(np.all(cross >= -1e-9, axis=1) | np.all(cross <= 1e-9, axis=1), dtype=np.bool_)
 
 
+def _strictly_inside_hull(hull: FloatArray, points: FloatArray) -> Mask:
+    """Whether each point (N, 2) lies inside the convex polygon `hull` (M, 2), its boundary excluded (a
+    vertex on a nearer silhouette's edge is still seen)."""
+    if len(hull) < 3:
+        return np.zeros(len(points), dtype=bool)
+    edge = np.roll(hull, -1, axis=0) - hull
+    rel = points[:, None, :] - hull[None, :, :]
+    cross = edge[None, :, 0] * rel[:, :, 1] - edge[None, :, 1] * rel[:, :, 0]
+    return np.asarray(np.all(cross > 1e-9, axis=1) | np.all(cross < -1e-9, axis=1), dtype=np.bool_)
+
+
 def _clip_hull_to_image(hull: FloatArray, lens: Lens) -> FloatArray | None:
     """Bounds [x1, y1, x2, y2] of the part of a convex silhouette inside the image (None: nothing)."""
     image = np.array([[0, 0], [lens.width, 0], [lens.width, lens.height], [0, lens.height]], np.float32)
@@ -345,7 +356,6 @@ def _visible_outlines(
     boxes: Boxes,
     distance: FloatArray,
     hulls: list[FloatArray],
-    extremes: FloatArray,
     n_targets: int,
     lens: Lens,
     grid: int,
@@ -354,9 +364,9 @@ def _visible_outlines(
     covered by nearer silhouettes of the same frame (vehicles and static occluders), and the box of what
     remains visible inside the image.
 
-    `boxes` (P, 4) bound the silhouettes `hulls` (P of (M, 2)); `extremes` (P, 4, 2) are the silhouette's
-    extreme points (min u, min v, max u, max v): an edge whose extreme point nothing covers stays exact,
-    others come from the uncovered cells of a grid x grid sample of the silhouette."""
+    `boxes` (P, 4) bound the silhouettes `hulls` (P of (M, 2)). The visible part's box bounds the hull
+    vertices nothing covers (exact) and the uncovered cells of a grid x grid sample of the silhouette (an
+    edge cut by a nearer silhouette is found to a cell)."""
     hidden = np.zeros(n_targets)
     visible = boxes[:n_targets].copy()
     pair_i, pair_j = [], []
@@ -397,10 +407,10 @@ def _visible_outlines(
         inside &= (samples[:, 0] >= 0) & (samples[:, 0] <= lens.width)
         inside &= (samples[:, 1] >= 0) & (samples[:, 1] <= lens.height)
         covered = np.zeros(len(samples), dtype=bool)
-        extreme_covered = np.zeros(4, dtype=bool)
+        vertex_covered = np.zeros(len(hull), dtype=bool)
         for other in nearer:
             covered |= _inside_hull(hulls[other], samples)
-            extreme_covered |= _inside_hull(hulls[other], extremes[target])
+            vertex_covered |= _strictly_inside_hull(hulls[other], hull)
         n_inside = int(inside.sum())
         if n_inside == 0:
             hidden[target] = 1.0
@@ -409,24 +419,16 @@ def _visible_outlines(
         hidden[target] = 1.0 - free.sum() / n_inside
         if not free.any():
             continue
-        pts = samples[free]
+        cells_free = samples[free]
         half = 0.5 * np.array([w, h]) / grid
-        from_cells = np.array(
-            [
-                pts[:, 0].min() - half[0],
-                pts[:, 1].min() - half[1],
-                pts[:, 0].max() + half[0],
-                pts[:, 1].max() + half[1],
-            ]
-        )
-        part = np.where(extreme_covered, from_cells, in_image)
+        corners = np.concatenate([cells_free - half, cells_free + half, hull[~vertex_covered]])
         # The visible part never reaches beyond the silhouette inside the image.
         visible[target] = np.array(
             [
-                max(part[0], in_image[0]),
-                max(part[1], in_image[1]),
-                min(part[2], in_image[2]),
-                min(part[3], in_image[3]),
+                max(corners[:, 0].min(), in_image[0]),
+                max(corners[:, 1].min(), in_image[1]),
+                min(corners[:, 0].max(), in_image[2]),
+                min(corners[:, 1].max(), in_image[3]),
             ]
         )
     return hidden, visible
@@ -688,26 +690,9 @@ def render_frames(
         occ_pixels, _ = camera.project_cam(occ_points @ R_cam_from_local.T + t_cam_from_local)
         occ_hulls = [_hull(p) for p in occ_pixels.reshape(-1, 8, 2)]
         hulls = [_hull(p) for p in pixels] + occ_hulls * frames
-        extremes = (
-            np.stack(
-                [
-                    np.stack(
-                        [
-                            p[np.argmin(p[:, 0])],
-                            p[np.argmin(p[:, 1])],
-                            p[np.argmax(p[:, 0])],
-                            p[np.argmax(p[:, 1])],
-                        ]
-                    )
-                    for p in pixels
-                ]
-            )
-            if len(pixels)
-            else np.zeros((0, 4, 2))
-        )
         boxes = np.concatenate([projected.raw[rows], np.tile(occ.raw[occ_ok], (frames, 1))])
         hidden, visible = _visible_outlines(
-            frame, boxes, distance, hulls, extremes, len(rows), camera, max(spec.occlusion_grid, 24)
+            frame, boxes, distance, hulls, len(rows), camera, max(spec.occlusion_grid, 24)
         )
     keep = hidden <= spec.max_hidden_fraction
     rows, hidden = rows[keep], hidden[keep]

@@ -1,11 +1,14 @@
-"""Deterministic roadside-camera scenario simulator: `simulate(preset, seed) -> SimulationResult`.
+"""Deterministic roadside-camera scenario simulator: `simulate(preset, seed, ideal) -> SimulationResult`.
 
-It produces what a real RSU system receives, plus the truth: every camera's detection frames (camera
-clock, 10 fps with jitter), the calibration vehicle's own pose reports (absolute UTM, its own clock, with
-noise, drift, dropouts) and the same as V2X broadcasts (WGS84, true-north heading), and per camera the true
-extrinsic and which box is the calibration vehicle in every frame. The world (sim.world), the traffic
-(sim.traffic) and the detector (sim.detector) are described in their modules; presets in sim.presets.
-Everything random comes from np.random.default_rng(seed) via one child generator per component.
+It produces what a real RSU system receives, plus the truth: every camera's detection frames (stamped by
+the camera pipeline: exposure plus an unknown latency), the calibration vehicle's IMU pose reports (absolute
+UTM, 50 Hz, its own clock: the toolbox's poses.yaml) and its V2X broadcasts (ETSI CAMs from its GNSS receiver
+in the real world, the IMU poses in the ideal one), and per camera the true extrinsic(s), the latency and
+which box is the calibration vehicle in every frame. The world (sim.world), the traffic (sim.traffic), the
+bodies (sim.shapes), the detector (sim.detector) and V2X (sim.v2x) are described in their modules; presets
+and the two worlds in sim.presets. The ideal world draws from np.random.default_rng(seed) via one child
+generator per component, exactly as the first simulator did; what the real world adds draws from streams
+of its own, so the ideal world's numbers never move.
 """
 
 from __future__ import annotations
