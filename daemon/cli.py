@@ -263,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--preset", default="sil-west", help="simulator preset (default sil-west, 2 cameras)")
     demo.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     demo.add_argument("--rate", type=float, default=20.0, help="time acceleration (default 20x)")
-    demo.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds")
+    demo.add_argument("--timeout", type=float, default=300.0, help="give up after this many seconds")
     demo.add_argument(
         "--ideal",
         action="store_true",

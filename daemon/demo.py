@@ -131,7 +131,7 @@ def run_demo(
     preset: str = "sil-west",
     seed: int = 0,
     rate: float = 20.0,
-    timeout_s: float = 120.0,
+    timeout_s: float = 300.0,
     state_dir: Path | None = None,
     port: int | None = None,
     out: Printer = print,
