@@ -52,8 +52,20 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     boxes = sum(len(fr.boxes) for f in result.detections.values() for fr in f)
     print(
         f"preset {args.preset} seed {args.seed}: {len(result.cameras)} camera(s), {frames} frames, "
-        f"{boxes} boxes, {len(result.poses)} vehicle poses, {result.traffic_count} other vehicles"
+        f"{boxes} boxes, {len(result.poses)} vehicle poses, {len(result.v2x)} V2X messages, "
+        f"{result.traffic_count} other vehicles"
     )
+    truth = next(iter(result.ground_truth.values()), None)
+    if truth is not None:
+        v = result.vehicle
+        world = "ideal world" if result.is_ideal else "real world"
+        latencies = ", ".join(
+            f"{t.camera_id} {t.latency_ns / 1e6:.0f} ms" for t in result.ground_truth.values()
+        )
+        print(
+            f"  {world}: calibration vehicle {truth.vehicle_type} {v.length:.2f} x {v.width:.2f} x "
+            f"{v.height:.2f} m, V2X {truth.v2x}, camera latency {latencies} (in the ground truth only)"
+        )
     for path in written:
         print(f"  wrote {path}")
     return EXIT_OK
