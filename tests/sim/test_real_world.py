@@ -12,6 +12,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from test_simulate import shrink as shrink_scene
 
 from sim.presets import PRESETS, REAL_CLOCK, CameraMoveSpec, ScenarioConfig
 from sim.shapes import TYPE_RANGES
@@ -21,13 +22,8 @@ from sim.simulate import SimulationResult, simulate
 def shrink(
     config: ScenarioConfig, routes: tuple[str, ...] | None = None, traffic: int = 20
 ) -> ScenarioConfig:
-    drive = replace(config.drive, routes=routes if routes is not None else config.drive.routes[:2])
-    return replace(
-        config,
-        road=replace(config.road, arm_length_m=260.0),
-        drive=drive,
-        traffic=replace(config.traffic, count=traffic),
-    )
+    """The ideal-world tests' smaller scene, in the real world."""
+    return shrink_scene(config, routes=routes, traffic=traffic, ideal=False)
 
 
 @pytest.fixture(scope="module")
