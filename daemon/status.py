@@ -22,12 +22,12 @@ import zenoh
 from pydantic import BaseModel, ValidationError
 
 from daemon.bus import (
-    DEFAULT_ENDPOINT,
     NO_CALIBRATION_YET,
     BusError,
     alive_key,
     calibration_key,
     client_config,
+    connect_endpoints,
     health_key,
     open_session,
     split_replies,
@@ -118,9 +118,10 @@ def fetch_status(
     camera_part = _check_identifier("--camera", camera)
     if not timeout_s > 0.0:
         raise InputError("--timeout-s", f"{timeout_s} must be positive")
-    endpoints = tuple(connect) or (() if zenoh_config is not None else (DEFAULT_ENDPOINT,))
-    where = endpoints or (f"the endpoints of {zenoh_config}",)
-    session = open_session(client_config(endpoints, config_file=zenoh_config), where)
+    config = client_config(connect, config_file=zenoh_config)
+    # Without --connect, the endpoints are those the --zenoh-config file gives (or loopback without one).
+    endpoints = tuple(connect) or tuple(connect_endpoints(config))
+    session = open_session(config, endpoints or (f"no endpoints in {zenoh_config}",))
     try:
         # All gets in flight at once: the read takes one timeout at worst, not four.
         pending_statuses = start_query(session, status_key(rsu_part, camera_part), timeout_s)
