@@ -36,18 +36,28 @@ from daemon.bus import (
     query_replies,
 )
 from daemon.demo import demo_config
-from daemon.ingest import UNKNOWN_KEY_REJECTED, V2X_ACCEPTED, V2X_RECEIVED
+from daemon.ingest import (
+    DETECTIONS_ACCEPTED,
+    DETECTIONS_RECEIVED,
+    UNKNOWN_KEY_REJECTED,
+    V2X_ACCEPTED,
+    V2X_OTHER_STATION,
+    V2X_RECEIVED,
+)
 from daemon.main import Daemon
-from daemon.recording import v2x_key
+from daemon.recording import detections_key, list_recordings, read_recording, v2x_key
 from daemon.state import StateStore
 from daemon.status import fetch_status, status_main
 from pipeline.metrics import result_from_ground_truth
 from pipeline.simulate import simulate
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
+from schemas.messages import DetectionFrame
 from schemas.results import CalibrationResult
 
 ZENOH_DIR = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
+RSU = "sil-west"  # deploy/rsu.example.yaml's, with the cameras of the simulator's sil-west preset
+OTHER_STATION = 777  # a station no certificate may speak for
 ANSWERED_S = 5.0  # an allowed query is answered within this (loopback; generous for loaded CI)
 REFUSED_S = 0.5  # a query nobody can answer: the getter waits this long for nothing
 COUNTED_S = 5.0  # an admitted V2X message is counted by the ingest thread within this
@@ -96,6 +106,7 @@ class Site:
     current_json: Path  # cameras/{cam}/current.json
     current_bytes: bytes  # its bytes as seeded
     drive: Iterator[bytes]  # the calibration vehicle's V2X positions of the simulation, restamped to now
+    frames: Iterator[DetectionFrame]  # the seeded camera's detections of the simulation, restamped too
 
     @property
     def rsu(self) -> str:
@@ -124,6 +135,22 @@ class Site:
     def position(self) -> bytes:
         """The vehicle's next position (each a new stamp, so the daemon accepts it, no duplicate)."""
         return next(self.drive)
+
+    def frame(self) -> DetectionFrame:
+        """The camera's next detection frame (a new stamp each)."""
+        return next(self.frames)
+
+    def recorded(self) -> tuple[set[int], dict[int, set[int]]]:
+        """Stamps in the daemon's recordings so far: the seeded camera's detections, and V2X per station.
+        The recorder flushes every storage.flush_interval_s; a file being written is read to its last chunk."""
+        frames: set[int] = set()
+        positions: dict[int, set[int]] = {}
+        for recording in list_recordings(self.daemon.recordings_dir, self.rsu):
+            content = read_recording(recording.path, rsu_id=self.rsu)
+            frames.update(frame.stamp_ns for frame in content.detections.get(self.camera, []))
+            for message in content.v2x:
+                positions.setdefault(message.station_id, set()).add(message.stamp_ns)
+        return frames, positions
 
 
 @dataclass
@@ -161,7 +188,8 @@ def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site
     sim = simulate("sil-west", 0)
     camera_id = sim.cameras[0].camera_id
     state_dir = tmp / "state"
-    result = result_from_ground_truth(sim.ground_truth[camera_id], sim.rsu_id)
+    # The RSU of deploy/rsu.example.yaml, whose cameras and vehicle the deployed access rules name.
+    result = result_from_ground_truth(sim.ground_truth[camera_id], RSU)
     StateStore(state_dir).save_result(result, current=True)
     current_json = state_dir / "cameras" / camera_id / "current.json"
     # The daemon's Zenoh file: the deployed secure.json5, only its certificate paths moved.
@@ -170,13 +198,18 @@ def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site
     # rsu.yaml as deploy/README.md section 5 writes it: config_file plus a TLS listener (no mode/connect).
     site_config = demo_config(sim, state_dir, 0).model_dump(mode="json", exclude={"zenoh"})
     config = DaemonConfig.model_validate(
-        {**site_config, "zenoh": {"config_file": str(zenoh_file), "listen": [endpoint]}}
+        {**site_config, "rsu_id": RSU, "zenoh": {"config_file": str(zenoh_file), "listen": [endpoint]}}
     )
     shift_ns = time.time_ns() - sim.v2x[0].stamp_ns
     drive = (
         m.model_copy(update={"stamp_ns": m.stamp_ns + shift_ns}).model_dump_json().encode("utf-8")
         for m in sim.v2x
         if m.station_id == sim.station_id
+    )
+    # The camera's detector output, each frame with a stamp of its own (recordings are checked by stamp).
+    frames = (
+        frame.model_copy(update={"stamp_ns": frame.stamp_ns + shift_ns})
+        for frame in sim.detections[camera_id]
     )
     daemon = Daemon(config)
     try:
@@ -191,6 +224,7 @@ def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site
             current_json=current_json,
             current_bytes=current_json.read_bytes(),
             drive=drive,
+            frames=frames,
         )
     finally:
         daemon.stop()
@@ -388,3 +422,95 @@ def test_rsucal_status_cli_with_the_secure_client_config(
     out = capsys.readouterr().out
     assert f"via {site.endpoint}" in out
     assert site.camera in out and "calibrated" in out
+
+
+# ------------------------------------------------------------------------------- identities bound to keys
+
+
+def _payload(frame: DetectionFrame) -> bytes:
+    return frame.model_dump_json().encode("utf-8")
+
+
+def _put_frame_counted(site: Site, detector: zenoh.Session) -> int:
+    """The detector puts the camera's next frame; returns its stamp once the daemon has counted it."""
+    before = site.counters()[DETECTIONS_RECEIVED]
+    frame = site.frame()
+    detector.put(detections_key(site.rsu, site.camera), _payload(frame))
+    wait_until(lambda: site.counters()[DETECTIONS_RECEIVED] > before, timeout_s=COUNTED_S)
+    return frame.stamp_ns
+
+
+def _put_position_counted(site: Site, vehicle: zenoh.Session) -> int:
+    """The vehicle puts its next position; returns its stamp once the daemon has counted it."""
+    before = site.counters()[V2X_RECEIVED]
+    payload = site.position()
+    vehicle.put(v2x_key(site.station), payload)
+    wait_until(lambda: site.counters()[V2X_RECEIVED] > before, timeout_s=COUNTED_S)
+    return int(json.loads(payload)["stamp_ns"])
+
+
+def test_only_the_cameras_detector_feeds_its_detections(site: Site, sessions: Sessions) -> None:
+    """Issue 14, gap 1: a valid certificate of the CA (untrusted-client) published detections that were
+    accepted and recorded. Now only the camera's detector identity (detector-sil-west) may; every other
+    identity's frames, on the exact key or a wildcard, are never counted, recorded or used (jobs read
+    their windows from the recordings; the camera's `detections` counter is what its status shows)."""
+    detector = sessions.open("detector-sil-west")
+    key = detections_key(site.rsu, site.camera)
+    legit = [_put_frame_counted(site, detector)]
+    counters = site.counters()
+    camera_detections = site.daemon.status(site.camera).counters["detections"]
+
+    fakes: list[int] = []
+    # The daemon's own identity too: its rule names its own keys, not `rsu/**`.
+    for identity in ("untrusted-client", "vehicle-4242", "rsucal-operator", "rsucal-daemon"):
+        other = sessions.open(identity)
+        for target in (key, "rsu/*/camera/*/detections", "rsu/**", "**"):
+            fake = site.frame()
+            fakes.append(fake.stamp_ns)
+            other.put(target, _payload(fake))
+        _round_trip(site, other)  # every fake put that passed is in the inbox (module docstring)
+    legit.append(_put_frame_counted(site, detector))
+
+    after = site.counters()
+    assert after[DETECTIONS_RECEIVED] == counters[DETECTIONS_RECEIVED] + 1
+    assert after[DETECTIONS_ACCEPTED] == counters[DETECTIONS_ACCEPTED] + 1
+    assert after[UNKNOWN_KEY_REJECTED] == counters[UNKNOWN_KEY_REJECTED]
+    assert site.daemon.status(site.camera).counters["detections"] == camera_detections + 1
+    # Recorded in order of ingest: once the detector's frames are in the file, a leaked fake would be too.
+    wait_until(lambda: set(legit) <= site.recorded()[0], timeout_s=COUNTED_S)
+    assert site.recorded()[0].isdisjoint(fakes)
+
+
+def test_a_vehicle_speaks_only_for_its_own_station(site: Site, sessions: Sessions) -> None:
+    """Issue 14, gap 2: with the certificate of vehicle 4242, positions put on v2x/cam/777 were accepted
+    (`v2x.other_station`). Now each vehicle certificate may put only its own station's key: vehicle 4242's
+    positions for another station, and the detector's for vehicle 4242, are never counted or recorded,
+    while vehicle 4242's own still are."""
+    vehicle = sessions.open("vehicle-4242")
+    detector = sessions.open("detector-sil-west")
+    legit = [_put_position_counted(site, vehicle)]
+    counters = site.counters()
+
+    spoofed: list[int] = []
+    for sender, station, targets in (
+        (vehicle, OTHER_STATION, (v2x_key(OTHER_STATION), "v2x/cam/*", "v2x/**", "**")),
+        (detector, site.station, (v2x_key(site.station), "v2x/**")),
+    ):
+        for target in targets:
+            spoof = json.loads(site.position())
+            spoof["station_id"] = station
+            spoof["lat"] += 0.0005  # ~55 m north: a position the real vehicle never had
+            spoofed.append(spoof["stamp_ns"])
+            sender.put(target, json.dumps(spoof).encode("utf-8"))
+        _round_trip(site, sender)
+    legit.append(_put_position_counted(site, vehicle))
+
+    after = site.counters()
+    assert after[V2X_RECEIVED] == counters[V2X_RECEIVED] + 1
+    assert after[V2X_ACCEPTED] == counters[V2X_ACCEPTED] + 1  # the vehicle's own: used for traversals
+    assert after[V2X_OTHER_STATION] == counters[V2X_OTHER_STATION]
+    assert after[UNKNOWN_KEY_REJECTED] == counters[UNKNOWN_KEY_REJECTED]
+    wait_until(lambda: set(legit) <= site.recorded()[1].get(site.station, set()), timeout_s=COUNTED_S)
+    positions = site.recorded()[1]
+    assert OTHER_STATION not in positions
+    assert positions[site.station].isdisjoint(spoofed)
