@@ -341,8 +341,12 @@ def access_problems(config: DaemonConfig, rules: AccessRules, *, owns_rules: boo
             if owns_rules:
                 problems.append(f"{granted}: station {rule_key.removeprefix('v2x/cam/')} is not in vehicles")
             for name in vehicle_names:
-                if rules.allowing(name, "tls", message, rule_key):
-                    problems.append(f"{name} may {message} {rule_key}, not its own station's key ({granted})")
+                rule_ids = rules.allowing(name, "tls", message, rule_key)
+                if rule_ids:
+                    by_rules = ", ".join(rule_ids)
+                    problems.append(
+                        f"{name} may {message} {rule_key}, not its own station's key (rule {by_rules})"
+                    )
         else:
             problems.append(f"{granted}: camera {rule_key.split('/')[3]} is not in cameras")
     return list(dict.fromkeys(problems))  # in order, each once
