@@ -142,7 +142,7 @@ class Site:
 
     def recorded(self) -> tuple[set[int], dict[int, set[int]]]:
         """Stamps in the daemon's recordings so far: the seeded camera's detections, and V2X per station.
-        The recorder flushes every storage.flush_interval_s; a file being written is read to its last chunk."""
+        The recorder flushes every storage.flush_interval_s; a file in writing is read to its last chunk."""
         frames: set[int] = set()
         positions: dict[int, set[int]] = {}
         for recording in list_recordings(self.daemon.recordings_dir, self.rsu):
