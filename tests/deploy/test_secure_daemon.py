@@ -514,3 +514,18 @@ def test_a_vehicle_speaks_only_for_its_own_station(site: Site, sessions: Session
     positions = site.recorded()[1]
     assert OTHER_STATION not in positions
     assert positions[site.station].isdisjoint(spoofed)
+
+
+def test_rsucal_status_names_the_endpoints_of_its_zenoh_config(
+    site: Site, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without --connect, status connects where the --zenoh-config file says and names those endpoints
+    (it printed "via :" and "endpoints": [] before)."""
+    config_file = site.client_file("rsucal-operator")  # connect/endpoints: [the daemon's endpoint]
+    argv = ["status", "--zenoh-config", str(config_file), "--timeout", "5"]
+    capsys.readouterr()
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert f"via {site.endpoint}:" in out
+    assert cli.main([*argv, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["endpoints"] == [site.endpoint]
