@@ -529,3 +529,67 @@ def test_rsucal_status_names_the_endpoints_of_its_zenoh_config(
     assert f"via {site.endpoint}:" in out
     assert cli.main([*argv, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["endpoints"] == [site.endpoint]
+
+
+def test_behind_the_secure_router_only_the_detector_feeds_the_daemon(certs: Path, tmp_path: Path) -> None:
+    """compose.secure.yaml's topology: a router on secure-router.json5 enforces the rules, the daemon is its
+    mutual-TLS client (secure-client.json5) and checks at start the router's file, named in
+    zenoh.access_control_file. An intruder's detections through the router never reach the daemon."""
+    sim = simulate("sil-west", 0)
+    camera = sim.cameras[0].camera_id
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    router_settings = {**_tls(certs, "rsucal-router"), "listen/endpoints": [endpoint]}
+    router_file = _write(_deployed("secure-router.json5", router_settings), tmp_path / "router.json5")
+    client_settings = {**_tls(certs, "rsucal-daemon"), "connect/endpoints": [endpoint]}
+    client_file = _write(_deployed("secure-client.json5", client_settings), tmp_path / "daemon.json5")
+    site_config = demo_config(sim, tmp_path / "state", 0).model_dump(mode="json", exclude={"zenoh"})
+    zenoh_fields = {
+        "mode": "client",
+        "config_file": str(client_file),
+        "access_control_file": str(router_file),
+    }
+    config = DaemonConfig.model_validate({**site_config, "rsu_id": RSU, "zenoh": zenoh_fields})
+    frames = iter(sim.detections[camera])
+    key = detections_key(RSU, camera)
+    opened: list[zenoh.Session] = []
+    router = zenoh.open(zenoh.Config.from_file(str(router_file)))
+    daemon = Daemon(config)
+    fakes: list[int] = []
+    try:
+        daemon.start()
+
+        def client(identity: str) -> zenoh.Session:
+            settings = {**_tls(certs, identity), "connect/endpoints": [endpoint]}
+            opened.append(zenoh.open(_deployed("secure-client.json5", settings)))
+            return opened[-1]
+
+        detector, intruder = client("detector-sil-west"), client("untrusted-client")
+
+        def detector_counted() -> bool:
+            # Again until the daemon's subscription, declared through the router, has reached the detector.
+            detector.put(key, _payload(next(frames)))
+            return daemon.health().counters[DETECTIONS_RECEIVED] > 0
+
+        wait_until(detector_counted, timeout_s=COUNTED_S)
+        for target in (key, "rsu/*/camera/*/detections", "rsu/**", "**"):
+            fake = next(frames)
+            fakes.append(fake.stamp_ns)
+            intruder.put(target, _payload(fake))
+        # Through the router too, the intruder's puts and its query reach the daemon in order.
+        assert len(_replies(intruder, health_key(RSU), ANSWERED_S)) == 1
+        last = next(frames)
+        before = daemon.health().counters[DETECTIONS_RECEIVED]
+        detector.put(key, _payload(last))
+        wait_until(lambda: daemon.health().counters[DETECTIONS_RECEIVED] > before, timeout_s=COUNTED_S)
+    finally:
+        for session in reversed(opened):
+            session.close()  # type: ignore[no-untyped-call]
+        daemon.stop()  # finishes the recording
+        router.close()  # type: ignore[no-untyped-call]
+    [recording] = list_recordings(daemon.recordings_dir, RSU)
+    recorded = {frame.stamp_ns for frame in read_recording(recording.path, rsu_id=RSU).detections[camera]}
+    # Recorded in order of arrival: the detector's last frame is there, so a leaked fake would be too. And
+    # every frame the daemon counted is one of the detector's.
+    assert last.stamp_ns in recorded and recorded.isdisjoint(fakes)
+    counters = daemon.health().counters
+    assert counters[DETECTIONS_RECEIVED] == counters[DETECTIONS_ACCEPTED] == len(recorded)
