@@ -31,9 +31,11 @@ from helpers import free_port, wait_until
 from daemon import cli
 from daemon.bus import (
     NO_CALIBRATION_YET,
+    alive_key,
     calibration_key,
     health_key,
     query_replies,
+    trigger_key,
 )
 from daemon.demo import demo_config
 from daemon.ingest import (
@@ -300,14 +302,17 @@ def test_operator_reads_the_calibration_and_status(
 
 
 def test_nodes_without_a_valid_certificate_cannot_connect(
-    site: Site, sessions: Sessions, rogue_certs: Path
+    site: Site, sessions: Sessions, rogue_certs: Path, expired_certs: Path, self_signed_certs: Path
 ) -> None:
     # A client fails at open: TLS without a certificate of its own, a certificate of another CA claiming
-    # the vehicle's or the operator's name, plain tcp to the TLS port.
+    # the vehicle's or the operator's name, the vehicle's name on a certificate of our CA that has expired
+    # or on a self-signed one, plain tcp to the TLS port.
     for identity, certs, protocol in (
         (None, None, "tls"),
         ("vehicle-4242", rogue_certs, "tls"),
         ("rsucal-operator", rogue_certs, "tls"),
+        ("vehicle-4242", expired_certs, "tls"),
+        ("vehicle-4242", self_signed_certs, "tls"),
         (None, None, "tcp"),
     ):
         with pytest.raises(zenoh.ZError):
@@ -593,3 +598,36 @@ def test_behind_the_secure_router_only_the_detector_feeds_the_daemon(certs: Path
     assert last.stamp_ns in recorded and recorded.isdisjoint(fakes)
     counters = daemon.health().counters
     assert counters[DETECTIONS_RECEIVED] == counters[DETECTIONS_ACCEPTED] == len(recorded)
+
+
+def test_only_an_operator_reaches_the_trigger(site: Site, sessions: Sessions) -> None:
+    """The trigger queryable answers every exact-key query (a job id, a reason, or an error for an unknown
+    camera), so an unanswered query never reached the daemon. The unknown camera starts no job."""
+    unknown = trigger_key(site.rsu, "no-such-camera")
+    for identity in ("untrusted-client", "vehicle-4242", "detector-sil-west"):
+        other = sessions.open(identity)
+        for key in (trigger_key(site.rsu, site.camera), unknown):
+            replies = query_replies(other, key, REFUSED_S)
+            assert replies.ok == [] and replies.errors == []
+    operator = sessions.open("rsucal-operator")
+    replies = query_replies(operator, unknown, ANSWERED_S)
+    assert replies.ok == [] and len(replies.errors) == 1 and "no such camera" in replies.errors[0]
+
+
+def test_unauthorised_identity_cannot_fake_a_liveliness_token(site: Site, sessions: Sessions) -> None:
+    intruder = sessions.open("untrusted-client")
+    tokens = [
+        intruder.liveliness().declare_token(key) for key in (alive_key("fake-rsu"), alive_key(site.rsu))
+    ]
+    try:
+        _round_trip(site, intruder)  # its declarations reached the daemon (and were refused there)
+        operator = sessions.open("rsucal-operator")
+        alive = [
+            str(reply.ok.key_expr)
+            for reply in operator.liveliness().get("rsu/*/alive", timeout=ANSWERED_S)
+            if reply.ok is not None
+        ]
+        assert alive == [alive_key(site.rsu)]  # the daemon's own token only
+    finally:
+        for token in tokens:
+            token.undeclare()  # type: ignore[no-untyped-call]
