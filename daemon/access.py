@@ -16,6 +16,7 @@ A secure deployment (deploy/zenoh/secure*.json5, mutual TLS) ends every link at 
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import os
@@ -192,10 +193,12 @@ class _Grants:
     deny: list[tuple[str, str]] = field(default_factory=list)
 
 
+@functools.lru_cache(maxsize=65536)
 def _includes(rule_key: str, key: str) -> bool:
     return bool(zenoh.KeyExpr(rule_key).includes(zenoh.KeyExpr(key)))
 
 
+@functools.lru_cache(maxsize=65536)
 def _intersects(rule_key: str, key: str) -> bool:
     return bool(zenoh.KeyExpr(rule_key).intersects(zenoh.KeyExpr(key)))
 
@@ -267,24 +270,39 @@ class AccessRules:
             else:
                 yield None, link, f"a node over plain {link}"
 
+    def passing(self, message: str, key: str) -> list[tuple[Combination, list[str]]]:
+        """The combinations that pass `message` on `key`, each with the ids of the allow rules that do."""
+        passing: list[tuple[Combination, list[str]]] = []
+        for (combination, kind), entry in self.grants.items():
+            if kind != message or any(_includes(rule_key, key) for rule_key, _ in entry.deny):
+                continue
+            rule_ids = [rule_id for rule_key, rule_id in entry.allow if _includes(rule_key, key)]
+            if rule_ids:
+                passing.append((combination, rule_ids))
+        return passing
+
     def allowing(
-        self, common_name: str | None, link: str, message: str, key: str, surely: bool = False
+        self,
+        common_name: str | None,
+        link: str,
+        message: str,
+        key: str,
+        surely: bool = False,
+        passing: Sequence[tuple[Combination, list[str]]] | None = None,
     ) -> list[str]:
         """Ids of the allow rules that let such a node send `message` on `key` (empty: refused). With
-        `surely`, only combinations that match whatever its interface, username or zid count."""
-        rule_ids: list[str] = []
-        for (combination, kind), entry in self.grants.items():
-            if kind != message:
-                continue
+        `surely`, only combinations that match whatever its interface, username or zid count. `passing`:
+        the result of passing(message, key), when the caller asks about many nodes."""
+        rule_ids: set[str] = set()
+        for combination, ids in self.passing(message, key) if passing is None else passing:
             matches = (
                 combination.surely_matches(common_name, link)
                 if surely and common_name is not None
                 else combination.may_match(common_name, link)
             )
-            if not matches or any(_includes(rule_key, key) for rule_key, _ in entry.deny):
-                continue
-            rule_ids.extend(rule_id for rule_key, rule_id in entry.allow if _includes(rule_key, key))
-        return sorted(set(rule_ids))
+            if matches:
+                rule_ids.update(ids)
+        return sorted(rule_ids)
 
     def allowed_keys(self) -> Iterator[tuple[str, str, str]]:
         """(message, key expression, rule id) of every publishing allow rule some subject has."""
@@ -312,17 +330,19 @@ def access_problems(config: DaemonConfig, rules: AccessRules, *, owns_rules: boo
         return ["access_control.default_permission must be deny: with allow, any key no rule names is open"]
     problems = list(rules.problems)
     expected = expected_publishers(config)
+    identities = list(rules.identities())
     for key, (owner, names) in expected.items():
+        passing = {message: rules.passing(message, key) for message in PUBLISHING}
         for name in names:
-            if not rules.allowing(name, "tls", "put", key, surely=True):
+            if not rules.allowing(name, "tls", "put", key, surely=True, passing=passing["put"]):
                 problems.append(
                     f"{owner}: {name} may not put {key} (no rule of a subject naming it allows it)"
                 )
-        for identity, link, label in rules.identities():
+        for identity, link, label in identities:
             if identity in names and link in CN_LINKS:
                 continue
             for message in PUBLISHING:
-                rule_ids = rules.allowing(identity, link, message, key)
+                rule_ids = rules.allowing(identity, link, message, key, passing=passing[message])
                 if rule_ids:
                     problems.append(f"{owner}: {label} may {message} {key} (rule {', '.join(rule_ids)})")
 
