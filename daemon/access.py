@@ -134,6 +134,12 @@ def render_site_config(config: DaemonConfig, base_file: Path) -> str:
         mode = json.loads(zconfig.get_json("mode"))
     except zenoh.ZError as err:
         raise BusError(f"zenoh config {base_file}: {zenoh_message(err)}") from err
+    if mode == "client":
+        raise AccessControlError(
+            f"--base {base_file}",
+            "a client enforces no access control; start from the enforcing node's config "
+            "(secure.json5 for the daemon as a secure peer, secure-router.json5 for a router)",
+        )
     problems = access_problems(config, AccessRules.parse(acl, protocols), owns_rules=mode != "router")
     if problems:
         raise AccessControlError(

@@ -391,3 +391,26 @@ def test_generator_refuses_a_base_that_contradicts_the_site(
     assert err.startswith(f"error: --base {base_file}: entries of the base contradict rsu.yaml: ")
     assert "(rule publish-detections)" in err
     assert not out.exists()
+
+
+def test_generator_refuses_a_client_config_as_base(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = ZENOH_DIR / "secure-client.json5"
+    out = tmp_path / "site.json5"
+    argv = [
+        "access-control",
+        "--config",
+        str(DEPLOY / "rsu.example.yaml"),
+        "--base",
+        str(base),
+        "--out",
+        str(out),
+    ]
+    capsys.readouterr()
+    assert cli.main(argv) == 2
+    assert capsys.readouterr().err == (
+        f"error: --base {base}: a client enforces no access control; start from the enforcing node's config "
+        "(secure.json5 for the daemon as a secure peer, secure-router.json5 for a router)\n"
+    )
+    assert not out.exists()
