@@ -51,11 +51,11 @@ from daemon.recording import detections_key, list_recordings, read_recording, v2
 from daemon.state import StateStore
 from daemon.status import fetch_status, status_main
 from pipeline.metrics import result_from_ground_truth
-from pipeline.simulate import simulate
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.messages import DetectionFrame
 from schemas.results import CalibrationResult
+from sim.simulate import simulate
 
 ZENOH_DIR = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
 RSU = "sil-west"  # deploy/rsu.example.yaml's, with the cameras of the simulator's sil-west preset
