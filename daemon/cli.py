@@ -254,7 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--connect",
         action="append",
         default=None,
-        help="Zenoh endpoint of the daemon or a router (repeatable; default tcp/127.0.0.1:7447)",
+        help="Zenoh endpoint of the daemon or a router (repeatable; default: those of --zenoh-config, "
+        "else tcp/127.0.0.1:7447)",
     )
     st.add_argument(
         "--zenoh-config",

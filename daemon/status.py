@@ -109,8 +109,9 @@ def fetch_status(
     zenoh_config: Path | None = None,
 ) -> StatusReport:
     """Query `rsu/{rsu or *}/camera/{camera or *}/calibration[/status]`, `rsu/{rsu or *}/health` and the
-    liveliness tokens `rsu/{rsu or *}/alive` through `connect` (default tcp/127.0.0.1:7447); `zenoh_config`
-    is a Zenoh JSON5 base config (TLS certificates for a secure site).
+    liveliness tokens `rsu/{rsu or *}/alive` through `connect`; `zenoh_config` is a Zenoh JSON5 base config
+    (TLS certificates for a secure site) whose own endpoints are used when `connect` is empty (without a
+    file: tcp/127.0.0.1:7447). The report names the endpoints used.
 
     Raises InputError for a malformed --rsu/--camera and BusError when no session can be opened.
     """
@@ -336,7 +337,8 @@ def report_json(report: StatusReport) -> str:
 def status_main(args: argparse.Namespace) -> int:
     """`rsucal status`: print the table (or --json); 0 when a health answered, 1 when nothing did.
 
-    args: connect (list of endpoints, empty: tcp/127.0.0.1:7447), rsu, camera, timeout_s, json.
+    args: connect (list of endpoints, empty: the --zenoh-config file's, else tcp/127.0.0.1:7447), rsu,
+    camera, timeout_s, json.
     """
     connect = [str(endpoint) for endpoint in (args.connect or [])]
     try:

@@ -2,11 +2,13 @@
 
 A Daemon runs with `zenoh.config_file` = the deployed secure peer config (only the certificate paths point at
 certificates made in the test by deploy/make-test-certs.sh) and, as deploy/README.md documents, its `listen`
-in the RSU config: a TLS endpoint on a free loopback port. Its state directory is pre-seeded with an accepted
-current result (the simulator's true pose of a sil-west camera), so it answers a calibration as soon as it is
-on the bus. Every other node is a real Zenoh session in client mode, with a copy of secure-client.json5
-holding its own certificate: the operator, the calibration vehicle (vehicle-4242) and an intruder with a
-valid certificate of the CA but no rights (untrusted-client).
+in the RSU config: a TLS endpoint on a free loopback port. Its RSU is deploy/rsu.example.yaml's (sil-west),
+whose cameras and vehicle the deployed rules name, so the daemon's start-up check of them passes. Its state
+directory is pre-seeded with an accepted current result (the simulator's true pose of a sil-west camera), so
+it answers a calibration as soon as it is on the bus. Every other node is a real Zenoh session in client mode,
+with a copy of secure-client.json5 holding its own certificate: the operator, the calibration vehicle
+(vehicle-4242), the cameras' detector (detector-sil-west) and an intruder with a valid certificate of the CA
+but no rights (untrusted-client). One test runs the router topology of compose.secure.yaml instead.
 
 "Never arrives" is proved without sleeping, from the order of messages on one link: a sender's put and its
 following query travel in order, and the daemon hands an admitted put to its subscriber callback (which
