@@ -189,7 +189,7 @@ class Sessions:
 @pytest.fixture(scope="module")
 def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
     tmp = tmp_path_factory.mktemp("secure-daemon")
-    sim = simulate("sil-west", 0)
+    sim = simulate("sil-west", 0, ideal=True)
     camera_id = sim.cameras[0].camera_id
     state_dir = tmp / "state"
     # The RSU of deploy/rsu.example.yaml, whose cameras and vehicle the deployed access rules name.
@@ -542,7 +542,7 @@ def test_behind_the_secure_router_only_the_detector_feeds_the_daemon(certs: Path
     """compose.secure.yaml's topology: a router on secure-router.json5 enforces the rules, the daemon is its
     mutual-TLS client (secure-client.json5) and checks at start the router's file, named in
     zenoh.access_control_file. An intruder's detections through the router never reach the daemon."""
-    sim = simulate("sil-west", 0)
+    sim = simulate("sil-west", 0, ideal=True)
     camera = sim.cameras[0].camera_id
     endpoint = f"tls/127.0.0.1:{free_port()}"
     router_settings = {**_tls(certs, "rsucal-router"), "listen/endpoints": [endpoint]}
