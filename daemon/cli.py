@@ -144,11 +144,25 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
     if not storage.state_dir.is_absolute():
         storage = storage.model_copy(update={"state_dir": (base / storage.state_dir).resolve()})
     zenoh_config = config.zenoh
-    if zenoh_config.config_file is not None and not zenoh_config.config_file.is_absolute():
-        zenoh_config = zenoh_config.model_copy(
-            update={"config_file": (base / zenoh_config.config_file).resolve()}
-        )
+    for name in ("config_file", "access_control_file"):
+        path = getattr(zenoh_config, name)
+        if path is not None and not path.is_absolute():
+            zenoh_config = zenoh_config.model_copy(update={name: (base / path).resolve()})
     return config.model_copy(update={"storage": storage, "zenoh": zenoh_config})
+
+
+def _cmd_access_control(args: argparse.Namespace) -> int:
+    from daemon.access import write_site_config
+    from pipeline.loaders import load_daemon_config
+
+    config_path = Path(args.config)
+    config = _resolve_relative_paths(load_daemon_config(config_path), config_path.parent)
+    out = write_site_config(config, Path(args.base), Path(args.out))
+    print(
+        f"wrote {out}: {args.base} with put rules for {len(config.vehicles)} vehicle(s) and "
+        f"{len(config.cameras)} camera(s) of rsu {config.rsu_id}; restart the node that enforces it"
+    )
+    return EXIT_OK
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -249,12 +263,27 @@ def build_parser() -> argparse.ArgumentParser:
     dmn.add_argument("--config", required=True, help="rsu.yaml (see deploy/rsu.example.yaml)")
     dmn.set_defaults(func=_cmd_daemon)
 
+    acl = sub.add_parser(
+        "access-control",
+        help="write a secure Zenoh config whose access rules let each detector and vehicle publish only its "
+        "own keys",
+        description="Copy a secure Zenoh config (--base: deploy/zenoh/secure.json5 for a secure peer, "
+        "secure-router.json5 for a router) with one put rule per calibration vehicle (v2x/cam/{station_id}) "
+        "and per camera (its detections and images), bound to the certificate common names of rsu.yaml. "
+        "The daemon refuses to start (exit 2) when the rules it runs with do not match its config.",
+    )
+    acl.add_argument("--config", required=True, help="rsu.yaml: cameras, vehicles and their certificates")
+    acl.add_argument("--base", required=True, help="the Zenoh config to start from (its other rules stay)")
+    acl.add_argument("--out", required=True, help="the Zenoh config to write (JSON, valid JSON5)")
+    acl.set_defaults(func=_cmd_access_control)
+
     st = sub.add_parser("status", help="query calibration status and health over Zenoh, as a table")
     st.add_argument(
         "--connect",
         action="append",
         default=None,
-        help="Zenoh endpoint of the daemon or a router (repeatable; default tcp/127.0.0.1:7447)",
+        help="Zenoh endpoint of the daemon or a router (repeatable; default: those of --zenoh-config, "
+        "else tcp/127.0.0.1:7447)",
     )
     st.add_argument(
         "--zenoh-config",
