@@ -41,8 +41,8 @@ def write_toolbox_pair(out_dir: Path, preset: str, seed: int) -> str:
     """Simulate `preset` and write its first camera's file set in the toolbox's block style; -> summary."""
     import yaml
 
-    from pipeline.loaders import write_simulation_files
-    from pipeline.simulate import simulate
+    from sim.files import write_simulation_files
+    from sim.simulate import simulate
 
     sim = simulate(preset, seed)
     camera_id = sim.cameras[0].camera_id

@@ -20,6 +20,7 @@ from pydantic import ValidationError
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig
+from sim.errors import SimulationError
 
 if TYPE_CHECKING:
     from schemas.files import GroundTruth
@@ -133,29 +134,41 @@ def _check_preset(preset: str, presets: Iterable[str]) -> None:
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from daemon.recording import write_simulation_mcap
-    from pipeline.loaders import write_simulation_files
-    from pipeline.simulate import PRESETS, simulate
+    from sim.files import write_simulation_files
+    from sim.simulate import PRESETS, simulate
 
     _check_preset(args.preset, PRESETS)
     # Every argument is checked before the simulation runs, so nothing is half-written on a bad one.
     out = _output_dir("--out", args.out)  # first: --preview may name a file inside it
     preview = _output_file("--preview", args.preview, suffix=".png") if args.preview is not None else None
-    result = simulate(args.preset, seed=args.seed)
+    result = simulate(args.preset, seed=args.seed, ideal=args.ideal)
     try:
         mcap_path = write_simulation_mcap(result, out / "recording.mcap")
         written = [mcap_path, *write_simulation_files(result, out)]
     except OSError as err:
         raise InputError("--out", f"cannot write into {args.out!r}: {err.strerror or err}") from err
     if preview is not None:
-        from pipeline.preview import write_preview
+        from sim.preview import write_previews
 
-        written.append(write_preview(result, preview))
+        written.extend(write_previews(result, preview))
     frames = sum(len(f) for f in result.detections.values())
     boxes = sum(len(fr.boxes) for f in result.detections.values() for fr in f)
     print(
         f"preset {args.preset} seed {args.seed}: {len(result.cameras)} camera(s), {frames} frames, "
-        f"{boxes} boxes, {len(result.poses)} vehicle poses, {result.traffic_count} other vehicles"
+        f"{boxes} boxes, {len(result.poses)} vehicle poses, {len(result.v2x)} V2X messages, "
+        f"{result.traffic_count} other vehicles"
     )
+    truth = next(iter(result.ground_truth.values()), None)
+    if truth is not None:
+        v = result.vehicle
+        world = "ideal world" if result.is_ideal else "real world"
+        latencies = ", ".join(
+            f"{t.camera_id} {t.latency_ns / 1e6:.0f} ms" for t in result.ground_truth.values()
+        )
+        print(
+            f"  {world}: calibration vehicle {truth.vehicle_type} {v.length:.2f} x {v.width:.2f} x "
+            f"{v.height:.2f} m, V2X {truth.v2x}, camera latency {latencies} (in the ground truth only)"
+        )
     for path in written:
         print(f"  wrote {path}")
     return EXIT_OK
@@ -274,11 +287,25 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
     if not storage.state_dir.is_absolute():
         storage = storage.model_copy(update={"state_dir": (base / storage.state_dir).resolve()})
     zenoh_config = config.zenoh
-    if zenoh_config.config_file is not None and not zenoh_config.config_file.is_absolute():
-        zenoh_config = zenoh_config.model_copy(
-            update={"config_file": (base / zenoh_config.config_file).resolve()}
-        )
+    for name in ("config_file", "access_control_file"):
+        path = getattr(zenoh_config, name)
+        if path is not None and not path.is_absolute():
+            zenoh_config = zenoh_config.model_copy(update={name: (base / path).resolve()})
     return config.model_copy(update={"storage": storage, "zenoh": zenoh_config})
+
+
+def _cmd_access_control(args: argparse.Namespace) -> int:
+    from daemon.access import write_site_config
+    from pipeline.loaders import load_daemon_config
+
+    config_path = Path(args.config)
+    config = _resolve_relative_paths(load_daemon_config(config_path), config_path.parent)
+    out = write_site_config(config, Path(args.base), Path(args.out))
+    print(
+        f"wrote {out}: {args.base} with put rules for {len(config.vehicles)} vehicle(s) and "
+        f"{len(config.cameras)} camera(s) of rsu {config.rsu_id}; restart the node that enforces it"
+    )
+    return EXIT_OK
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -289,10 +316,12 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from daemon.demo import run_demo
-    from pipeline.simulate import PRESETS
+    from sim.presets import PRESETS
 
     _check_preset(args.preset, PRESETS)
-    return run_demo(preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout)
+    return run_demo(
+        preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout, ideal=args.ideal
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -311,10 +340,25 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser(
         "simulate", help="generate a seeded RSU scenario: MCAP, toolbox YAML pair, ground truth"
     )
-    sim.add_argument("--preset", default="sil-west", help="scenario preset (default sil-west)")
+    from sim.presets import PRESETS  # plain data: cheap to import for the help text
+
+    sim.add_argument(
+        "--preset",
+        default="sil-west",
+        help=f"scenario preset (default sil-west): {', '.join(sorted(PRESETS))}",
+    )
     sim.add_argument("--seed", type=_SEED, default=0, help="random seed, >= 0 (default 0)")
     sim.add_argument("--out", required=True, help="output directory (created if needed)")
-    sim.add_argument("--preview", help="write a PNG of one busy frame to this .png file")
+    sim.add_argument(
+        "--preview",
+        help="write a PNG of one busy frame per camera to this .png file (PATH_<camera>.png when there are "
+        "several); its directory must exist",
+    )
+    sim.add_argument(
+        "--ideal",
+        action="store_true",
+        help="the first simulator's world: cuboid boxes, no latency, i.i.d. jitter, IMU poses as V2X",
+    )
     sim.set_defaults(func=_cmd_simulate)
 
     ev = sub.add_parser(
@@ -384,12 +428,27 @@ def build_parser() -> argparse.ArgumentParser:
     dmn.add_argument("--config", required=True, help="rsu.yaml (see deploy/rsu.example.yaml)")
     dmn.set_defaults(func=_cmd_daemon)
 
+    acl = sub.add_parser(
+        "access-control",
+        help="write a secure Zenoh config whose access rules let each detector and vehicle publish only its "
+        "own keys",
+        description="Copy a secure Zenoh config (--base: deploy/zenoh/secure.json5 for a secure peer, "
+        "secure-router.json5 for a router) with one put rule per calibration vehicle (v2x/cam/{station_id}) "
+        "and per camera (its detections and images), bound to the certificate common names of rsu.yaml. "
+        "The daemon refuses to start (exit 2) when the rules it runs with do not match its config.",
+    )
+    acl.add_argument("--config", required=True, help="rsu.yaml: cameras, vehicles and their certificates")
+    acl.add_argument("--base", required=True, help="the Zenoh config to start from (its other rules stay)")
+    acl.add_argument("--out", required=True, help="the Zenoh config to write (JSON, valid JSON5)")
+    acl.set_defaults(func=_cmd_access_control)
+
     st = sub.add_parser("status", help="query calibration status and health over Zenoh, as a table")
     st.add_argument(
         "--connect",
         action="append",
         default=None,
-        help="Zenoh endpoint of the daemon or a router (repeatable; default tcp/127.0.0.1:7447)",
+        help="Zenoh endpoint of the daemon or a router (repeatable; default: those of --zenoh-config, "
+        "else tcp/127.0.0.1:7447)",
     )
     st.add_argument(
         "--zenoh-config",
@@ -413,7 +472,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=_positive_seconds, default=20.0, help="time acceleration, > 0 (default 20x)"
     )
     demo.add_argument(
-        "--timeout", type=_positive_seconds, default=120.0, help="give up after this many seconds"
+        "--timeout", type=_positive_seconds, default=300.0, help="give up after this many seconds"
+    )
+    demo.add_argument(
+        "--ideal",
+        action="store_true",
+        help="the first simulator's world (cuboid boxes, no latency, IMU poses): every camera must calibrate",
     )
     demo.set_defaults(func=_cmd_demo)
     return parser
@@ -433,7 +497,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValidationError as err:
         print(f"error: {describe_validation_error(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (InputError, RecordingError) as err:
+    except (InputError, RecordingError, SimulationError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except RsucalError as err:

@@ -55,8 +55,8 @@ class Files:
 @functools.cache
 def files() -> Files:
     """Written once per process under DIR."""
-    from pipeline.loaders import format_toolbox_detections, format_toolbox_poses
     from pipeline.metrics import result_from_ground_truth
+    from sim.files import format_toolbox_detections, format_toolbox_poses
 
     rec = small_recording()
     sim = simulation()
