@@ -157,7 +157,20 @@ def cli_main(preset: str, seed: int, repeat: int, pair_dir: Path | None, compare
         if pair_dir is None:
             pair_dir = work / "pair"
             pair_dir.mkdir()
-            print(write_toolbox_pair(pair_dir, preset, seed))
+            # In a child: Linux carries a process's peak RSS across fork + exec, so if this process held
+            # the simulation, every command started from it would report that size as its own peak.
+            write_argv = [sys.executable, "-m", "bench.speed", "--write-pair", str(pair_dir)]
+            writer = subprocess.run(
+                [*write_argv, "--preset", preset, "--seed", str(seed)],
+                cwd=REPO_ROOT,
+                capture_output=True,
+                text=True,
+                check=False,
+            )
+            if writer.returncode != 0:
+                print(f"writing the pair failed:\n{writer.stderr}")
+                return 1
+            print(writer.stdout.strip())
         else:
             missing = [name for name in FILES if not (pair_dir / name).is_file()]
             if missing:

@@ -183,9 +183,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--compare", help="--cli: time this command too ({camera} {vehicle} {detections} {poses} {out})"
     )
     parser.add_argument("--instrumented", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--write-pair", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--prepare", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--measure", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.write_pair:
+        from bench.cli_speed import write_toolbox_pair
+
+        print(write_toolbox_pair(args.write_pair, args.preset, args.seed))
+        return 0
     if args.instrumented:
         from bench.cli_speed import instrumented_main
 
