@@ -23,6 +23,7 @@ from typing import Any, Literal
 import zenoh
 
 from daemon.clock import Clock
+from daemon.foxglove import FRAME_TRANSFORM, transform_key
 from daemon.recording import detections_key
 from pipeline.errors import RsucalError
 from schemas.config import DaemonConfig, ZenohConfig
@@ -31,6 +32,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 JSON = zenoh.Encoding.APPLICATION_JSON
+FRAME_TRANSFORM_ENCODING = zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(FRAME_TRANSFORM.name)
 # The text of the error reply to `.../calibration` before a camera has a validated result: fleet readers
 # (`rsucal status`) recognise it as "not calibrated yet" rather than a fault.
 NO_CALIBRATION_YET = "no validated calibration yet"
@@ -314,6 +316,20 @@ class Bus:
         key = calibration_key(self._rsu_id, camera_id)
         try:
             session.put(key, payload, encoding=JSON)
+        except zenoh.ZError as err:
+            raise BusError(f"put {key}: {zenoh_message(err)}") from err
+
+    def publish_transform(self, camera_id: str, payload: bytes) -> None:
+        """Put an accepted result as foxglove.FrameTransform (protobuf) on `.../calibration/transform`, so a
+        live Foxglove session over Zenoh shows the camera (daemon.foxglove.frame_transform)."""
+        if camera_id not in self._camera_ids:
+            raise KeyError(f"camera_id {camera_id!r} is not configured")
+        session = self._session
+        if session is None or self._state != "open":
+            raise BusError(f"bus of rsu {self._rsu_id} is not open")
+        key = transform_key(self._rsu_id, camera_id)
+        try:
+            session.put(key, payload, encoding=FRAME_TRANSFORM_ENCODING)
         except zenoh.ZError as err:
             raise BusError(f"put {key}: {zenoh_message(err)}") from err
 

@@ -33,6 +33,7 @@ import zenoh
 from daemon import __version__
 from daemon.bus import Bus, Handlers, session_config
 from daemon.clock import Clock, SystemClock
+from daemon.foxglove import frame_transform
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
 from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
 from daemon.recording import RotatingRecorder, iter_v2x, list_recordings
@@ -373,13 +374,18 @@ class Daemon:
             return
         if isinstance(decoded, DetectionsIn):
             self.recorder.write_detections(
-                decoded.camera_id, decoded.stamp_ns, decoded.received_ns, decoded.payload
+                decoded.camera_id, decoded.stamp_ns, decoded.received_ns, decoded.payload, decoded.box_fields
             )
             self._camera_detections[decoded.camera_id] += 1
             return
         assert isinstance(decoded, V2xIn)
         self.recorder.write_v2x(
-            decoded.station_id, decoded.message.stamp_ns, decoded.received_ns, decoded.payload
+            decoded.station_id,
+            decoded.message.stamp_ns,
+            decoded.received_ns,
+            decoded.payload,
+            decoded.message,
+            is_vehicle=decoded.utm is not None,
         )
         if decoded.utm is None:
             return
@@ -599,9 +605,14 @@ class Daemon:
             if publish is not None and result is not None:
                 self._current[camera_id] = result
                 self._current_json[camera_id] = publish
+        if result is not None:
+            # The recorder belongs to the ingest thread: the result channels are written there.
+            recorded = result
+            self._inbox.put(lambda: self.recorder.write_result(recorded, self.clock.now_ns()))
         if publish is not None and result is not None:
             if self._bus is not None:
                 self._bus.publish_calibration(camera_id, publish)
+                self._bus.publish_transform(camera_id, frame_transform(result))
             if self.trackers[camera_id].snapshot().learning:
                 learned = coverage_from_result(result)
                 self._inbox.put(lambda: self._learn_coverage(camera_id, learned))

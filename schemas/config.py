@@ -137,6 +137,10 @@ class StorageConfig(StrictModel):
         default=20 * GIB, ge=16 * MIB, le=2**50, description="recordings kept, total"
     )
     retention_s: float = Field(default=7 * 86_400.0, ge=60.0, le=3650 * 86_400.0, allow_inf_nan=False)
+    foxglove_views: bool = Field(
+        default=True,
+        description="also record Foxglove views: LocationFix, ImageAnnotations, FrameTransform, camera info",
+    )
 
 
 class IngestConfig(StrictModel):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from typing import Annotated, NotRequired
 
 from pydantic import ConfigDict, Field, TypeAdapter
@@ -51,15 +52,23 @@ def check_detection_frame(raw: bytes | str) -> tuple[str, int, int]:
     Raises the same pydantic.ValidationError as DetectionFrame would: on any failure the payload is validated
     again by the model itself, so the error (and its field names) is always the model's.
     """
+    camera_id, stamp_ns, boxes = check_detection_frame_boxes(raw)
+    return camera_id, stamp_ns, len(boxes)
+
+
+def check_detection_frame_boxes(raw: bytes | str) -> tuple[str, int, Sequence[Mapping[str, float]]]:
+    """check_detection_frame, returning the validated boxes (x1, y1, x2, y2 px; cls, score when given) as
+    read-only mappings instead of their number: what the recorder draws, at no extra parsing."""
     try:
         fields = _DETECTION_FRAME_FIELDS.validate_json(raw, strict=True)
-        boxes = fields.get("boxes", ())
+        boxes: Sequence[Mapping[str, float]] = fields.get("boxes", ())
         if all(box["x2"] > box["x1"] and box["y2"] > box["y1"] for box in boxes):
-            return fields["camera_id"], fields["stamp_ns"], len(boxes)
+            return fields["camera_id"], fields["stamp_ns"], boxes
     except ValueError:  # pydantic's ValidationError included; the model says what exactly is wrong
         pass
     frame = DetectionFrame.model_validate_json(raw, strict=True)
-    return frame.camera_id, frame.stamp_ns, len(frame.boxes)  # only reached if the two ever disagree
+    # only reached if the two ever disagree
+    return frame.camera_id, frame.stamp_ns, [box.model_dump() for box in frame.boxes]
 
 
 class V2xAccuracies(StrictModel):
