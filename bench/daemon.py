@@ -631,8 +631,13 @@ class DaemonProcess:
         return [line for line in lines if " WARNING " in line or " ERROR " in line or "Traceback" in line]
 
 
+# The received messages' channels; the Foxglove views beside them (storage.foxglove_views) are not counted.
+INPUT_SCHEMAS = frozenset({"rsucal.DetectionFrame", "rsucal.V2xPosition"})
+
+
 def mcap_summary(directory: Path) -> tuple[int, int, int]:
-    """(files, bytes, messages) of the MCAP files in `directory` (messages from each file's statistics)."""
+    """(files, bytes, messages received) of the MCAP files in `directory`, from each file's statistics:
+    messages on the raw DetectionFrame / V2xPosition channels only."""
     from mcap.reader import make_reader
 
     files = sorted(directory.glob("*.mcap"))
@@ -641,7 +646,11 @@ def mcap_summary(directory: Path) -> tuple[int, int, int]:
         with path.open("rb") as stream:
             summary = make_reader(stream).get_summary()
         if summary is not None and summary.statistics is not None:
-            messages += summary.statistics.message_count
+            counts = summary.statistics.channel_message_counts
+            for channel_id, channel in summary.channels.items():
+                schema = summary.schemas.get(channel.schema_id)
+                if schema is not None and schema.name in INPUT_SCHEMAS:
+                    messages += counts.get(channel_id, 0)
     return len(files), sum(p.stat().st_size for p in files), messages
 
 

@@ -113,6 +113,26 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK if outcome.result.verdict.is_accepted else EXIT_REFUSED
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    from daemon.report import run_report
+
+    written = run_report(
+        Path(args.result),
+        Path(args.vehicle),
+        Path(args.out),
+        mcap_path=Path(args.mcap) if args.mcap else None,
+        detections_path=Path(args.detections) if args.detections else None,
+        poses_path=Path(args.poses) if args.poses else None,
+        station_id=args.station_id,
+        time_offset_ns=args.time_offset_ns,
+        seed=args.seed,
+        workers=args.workers,
+    )
+    for path in written:
+        print(f"wrote {path}")
+    return EXIT_OK
+
+
 def _cmd_daemon(args: argparse.Namespace) -> int:
     from daemon.main import run_daemon
     from pipeline.loaders import load_daemon_config
@@ -215,6 +235,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cal.add_argument("--out", required=True, help="CalibrationResult JSON to write (atomically)")
     cal.set_defaults(func=_cmd_calibrate)
+
+    rep = sub.add_parser(
+        "report",
+        help="RESULT.json + its recording or YAML pair -> one self-contained HTML report and PNG figures",
+        description="Re-run the calibration on the result's data and draw it: the vehicle model over its "
+        "boxes, a map, delta_p against distance, residuals, hypothesis groups, uncertainty, the verdict.",
+    )
+    rep.add_argument("result", help="CalibrationResult JSON (rsucal calibrate --out, or a daemon's history/)")
+    rep.add_argument("--vehicle", required=True, help="vehicle.yaml: the calibration vehicle's box and IMU")
+    rep_source = rep.add_mutually_exclusive_group(required=True)
+    rep_source.add_argument("--mcap", help="the rsucal MCAP recording the result was made from")
+    rep_source.add_argument("--detections", help="toolbox detections.yaml (needs --poses)")
+    rep.add_argument("--poses", help="toolbox poses.yaml (with --detections)")
+    rep.add_argument("--station-id", type=int, help="MCAP: the calibration vehicle (default: the result's)")
+    rep.add_argument("--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns")
+    rep.add_argument("--seed", type=int, default=0, help="RANSAC random seed of the re-run (default 0)")
+    rep.add_argument("--workers", type=int, default=None, help="processes for the per-track fits")
+    rep.add_argument("--out", required=True, help="directory for report.html and the PNGs")
+    rep.set_defaults(func=_cmd_report)
 
     dmn = sub.add_parser("daemon", help="run the RSU service (Zenoh in, MCAP log, calibration out)")
     dmn.add_argument("--config", required=True, help="rsu.yaml (see deploy/rsu.example.yaml)")

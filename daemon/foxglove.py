@@ -19,6 +19,7 @@ import math
 import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
@@ -65,13 +66,13 @@ def _file_descriptor_set(descriptor: Descriptor) -> bytes:
         file.CopyToProto(files.file.add())
 
     add(descriptor.file)
-    return files.SerializeToString()
+    return bytes(files.SerializeToString())
 
 
 @functools.cache
 def protobuf_schema(name: str) -> MessageSchema:
     """foxglove.{name} (LocationFix, ImageAnnotations, FrameTransform, CameraCalibration): an MCAP schema."""
-    classes = {
+    classes: dict[str, Any] = {
         "LocationFix": LocationFix,
         "ImageAnnotations": ImageAnnotations,
         "FrameTransform": FrameTransform,
@@ -161,13 +162,7 @@ def _submessage(number: int, body: bytes) -> bytes:
 
 def _timestamp(number: int, stamp_ns: int) -> bytes:
     """google.protobuf.Timestamp {seconds = 1, nanos = 2} of a non-negative stamp (ns since the epoch)."""
-    if not 0 <= stamp_ns <= MAX_STAMP_NS:
-        raise ValueError(f"stamp_ns = {stamp_ns} is outside [0, 2^63)")
-    seconds, nanos = divmod(stamp_ns, 1_000_000_000)
-    body = (_key(1, _VARINT) + _varint(seconds) if seconds else b"") + (
-        _key(2, _VARINT) + _varint(nanos) if nanos else b""
-    )
-    return _submessage(number, body)
+    return _submessage(number, _timestamp_body(stamp_ns))
 
 
 def _color(number: int, rgba: tuple[float, float, float, float]) -> bytes:
@@ -221,10 +216,21 @@ def location_fix(message: V2xPosition, is_vehicle: bool) -> bytes:
 
 _POINT_HEAD = b"\x1a\x12\x09"  # PointsAnnotation.points (3), length 18, Point2.x (1) double
 _POINT_Y = b"\x11"  # Point2.y (2) double
-_LINE_LOOP = 2  # PointsAnnotation.Type
-# One box as a closed line loop of its 4 corners: x1y1, x2y1, x2y2, x1y2.
-_BOX_POINTS = struct.Struct("<" + "3sd1sd" * 4)
-_POINTS_BYTES = _BOX_POINTS.size
+_LINE_LOOP_TYPE = b"\x10\x02"  # PointsAnnotation.type (2) = LINE_LOOP
+_POINTS_BYTES = 4 * 20  # 4 corners, each a points (3) entry of 2 + 18 bytes
+
+
+@functools.lru_cache(maxsize=64)
+def _seconds_field(seconds: int) -> bytes:
+    """Timestamp.seconds (1) as key and varint; the same for every frame of one second."""
+    return _key(1, _VARINT) + _varint(seconds) if seconds else b""
+
+
+def _timestamp_body(stamp_ns: int) -> bytes:
+    if not 0 <= stamp_ns <= MAX_STAMP_NS:
+        raise ValueError(f"stamp_ns = {stamp_ns} is outside [0, 2^63)")
+    seconds, nanos = divmod(stamp_ns, 1_000_000_000)
+    return _seconds_field(seconds) + (b"\x10" + _varint(nanos) if nanos else b"")
 
 
 @functools.cache
@@ -235,41 +241,66 @@ def _box_suffix(is_vehicle: bool) -> bytes:
     return _color(4, rgba) + _double(7, thickness)
 
 
-def _box_prefix(stamp_ns: int, is_vehicle: bool) -> bytes:
-    """ImageAnnotations.points (2) key and length, then the PointsAnnotation's timestamp and type."""
-    body_head = _timestamp(1, stamp_ns) + _key(2, _VARINT) + _varint(_LINE_LOOP)
-    length = len(body_head) + _POINTS_BYTES + len(_box_suffix(is_vehicle))
-    return b"\x12" + _varint(length) + body_head
+@functools.cache
+def _box_struct(prefix_bytes: int, suffix_bytes: int) -> struct.Struct:
+    """One whole ImageAnnotations.points entry: prefix, a LINE_LOOP of 4 corners, suffix; one pack per box."""
+    return struct.Struct(f"<{prefix_bytes}s" + "3sd1sd" * 4 + f"{suffix_bytes}s")
 
 
 BoxCorners = tuple[float, float, float, float]
 
 
 def image_annotations(
-    stamp_ns: int, boxes: Iterable[Mapping[str, float]], vehicle_boxes: Sequence[BoxCorners] = ()
+    stamp_ns: int, boxes: Iterable[Mapping[str, Any]], vehicle_boxes: Sequence[BoxCorners] = ()
 ) -> bytes:
-    """One camera frame's boxes (dicts with x1, y1, x2, y2 in px) as foxglove.ImageAnnotations.
+    """One camera frame's boxes (mappings with x1, y1, x2, y2 in px) as foxglove.ImageAnnotations.
 
     Each box is a LINE_LOOP of its corners stamped `stamp_ns`; `vehicle_boxes` (x1, y1, x2, y2), the
-    calibration vehicle's once known, are drawn thicker in another colour.
+    calibration vehicle's once known, are drawn thicker in another colour. On the ingest path: one
+    struct.pack per box (~0.4 us), everything else once per frame.
     """
-    prefix = _box_prefix(stamp_ns, False)
-    suffix = _box_suffix(False)
-    head, y = _POINT_HEAD, _POINT_Y
+    stamp = _timestamp_body(stamp_ns)
+    head = b"\x0a" + _varint(len(stamp)) + stamp + _LINE_LOOP_TYPE  # PointsAnnotation.timestamp (1), type
+    h, y = _POINT_HEAD, _POINT_Y
     parts = []
-    for box in boxes:
-        x1, y1, x2, y2 = box["x1"], box["y1"], box["x2"], box["y2"]
-        parts.append(prefix)
-        parts.append(_BOX_POINTS.pack(head, x1, y, y1, head, x2, y, y1, head, x2, y, y2, head, x1, y, y2))
-        parts.append(suffix)
-    if vehicle_boxes:
-        prefix = _box_prefix(stamp_ns, True)
-        suffix = _box_suffix(True)
-        for x1, y1, x2, y2 in vehicle_boxes:
-            parts.append(prefix)
-            parts.append(_BOX_POINTS.pack(head, x1, y, y1, head, x2, y, y1, head, x2, y, y2, head, x1, y, y2))
-            parts.append(suffix)
-    parts.append(_timestamp(5, stamp_ns))
+    for is_vehicle, group in ((False, None), (True, vehicle_boxes)):
+        if is_vehicle and not vehicle_boxes:
+            break
+        suffix = _box_suffix(is_vehicle)
+        prefix = (
+            b"\x12" + _varint(len(head) + _POINTS_BYTES + len(suffix)) + head
+        )  # ImageAnnotations.points (2)
+        pack = _box_struct(len(prefix), len(suffix)).pack
+        if group is None:
+            parts = [
+                pack(
+                    prefix,
+                    h,
+                    b["x1"],
+                    y,
+                    b["y1"],
+                    h,
+                    b["x2"],
+                    y,
+                    b["y1"],
+                    h,
+                    b["x2"],
+                    y,
+                    b["y2"],
+                    h,
+                    b["x1"],
+                    y,
+                    b["y2"],
+                    suffix,
+                )
+                for b in boxes
+            ]
+        else:
+            parts.extend(
+                pack(prefix, h, x1, y, y1, h, x2, y, y1, h, x2, y, y2, h, x1, y, y2, suffix)
+                for x1, y1, x2, y2 in group
+            )
+    parts.append(b"\x2a" + _varint(len(stamp)) + stamp)  # ImageAnnotations.timestamp (5)
     return b"".join(parts)
 
 
@@ -323,7 +354,7 @@ def frame_transform(result: CalibrationResult) -> bytes:
     message.timestamp.FromNanoseconds(result.created_at_ns)
     message.translation.x, message.translation.y, message.translation.z = centre
     message.rotation.w, message.rotation.x, message.rotation.y, message.rotation.z = w, x, y, z
-    return message.SerializeToString()
+    return bytes(message.SerializeToString())
 
 
 def origin_transform(result: CalibrationResult) -> bytes:
@@ -335,7 +366,7 @@ def origin_transform(result: CalibrationResult) -> bytes:
     message.timestamp.FromNanoseconds(result.created_at_ns)
     message.translation.x, message.translation.y, message.translation.z = result.frame.origin
     message.rotation.w = 1.0
-    return message.SerializeToString()
+    return bytes(message.SerializeToString())
 
 
 def camera_calibration(result: CalibrationResult) -> bytes:
@@ -352,4 +383,4 @@ def camera_calibration(result: CalibrationResult) -> bytes:
         P=[k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
     )
     message.timestamp.FromNanoseconds(result.created_at_ns)
-    return message.SerializeToString()
+    return bytes(message.SerializeToString())

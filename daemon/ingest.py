@@ -82,7 +82,7 @@ class DetectionsIn:
     boxes: int
     received_ns: int
     payload: bytes
-    box_fields: Sequence[Mapping[str, float]] = ()  # the validated boxes, as parsed (for the Foxglove view)
+    box_fields: Sequence[Mapping[str, object]] = ()  # the validated boxes, as parsed (for the Foxglove view)
 
 
 @dataclass(frozen=True, slots=True)

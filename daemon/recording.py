@@ -1270,7 +1270,7 @@ class RotatingRecorder:
         stamp_ns: int,
         received_ns: int,
         payload: bytes,
-        boxes: Sequence[Mapping[str, float]] | None = None,
+        boxes: Sequence[Mapping[str, object]] | None = None,
     ) -> None:
         """Log a validated DetectionFrame payload on rsu/{rsu_id}/camera/{camera_id}/detections and, given its
         `boxes` (x1, y1, x2, y2 px) and with views on, their foxglove.ImageAnnotations beside it."""

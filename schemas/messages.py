@@ -56,12 +56,12 @@ def check_detection_frame(raw: bytes | str) -> tuple[str, int, int]:
     return camera_id, stamp_ns, len(boxes)
 
 
-def check_detection_frame_boxes(raw: bytes | str) -> tuple[str, int, Sequence[Mapping[str, float]]]:
+def check_detection_frame_boxes(raw: bytes | str) -> tuple[str, int, Sequence[Mapping[str, object]]]:
     """check_detection_frame, returning the validated boxes (x1, y1, x2, y2 px; cls, score when given) as
     read-only mappings instead of their number: what the recorder draws, at no extra parsing."""
     try:
         fields = _DETECTION_FRAME_FIELDS.validate_json(raw, strict=True)
-        boxes: Sequence[Mapping[str, float]] = fields.get("boxes", ())
+        boxes = fields.get("boxes", [])
         if all(box["x2"] > box["x1"] and box["y2"] > box["y1"] for box in boxes):
             return fields["camera_id"], fields["stamp_ns"], boxes
     except ValueError:  # pydantic's ValidationError included; the model says what exactly is wrong
