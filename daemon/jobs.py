@@ -31,7 +31,7 @@ from collections.abc import Iterator
 from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -43,7 +43,13 @@ from pydantic import ValidationError
 from daemon.offline import collapse_counted_notes
 from daemon.recording import MCAP_MAGIC, read_window
 from daemon.workers import descendant_pids, die_with_parent, kill_pid, track_pool
-from pipeline.calibrate import SOFTWARE_VERSION, CalibrationInputs, PipelineParams, calibrate
+from pipeline.calibrate import (
+    SOFTWARE_VERSION,
+    CalibrationInputs,
+    CalibrationOutcome,
+    PipelineParams,
+    calibrate,
+)
 from pipeline.errors import RsucalError
 from pipeline.frames import UtmFrame, poses_from_v2x
 from pipeline.validation import ValidationGates
@@ -86,6 +92,8 @@ class JobSpec:
     created_at_ns: int  # the result's created_at_ns (our clock, when the job was started)
     config_hash: str  # of the daemon's config, stored in the result's provenance
     timeout_s: float = DEFAULT_TIMEOUT_S  # jobs.timeout_s: wall time from the job's start in its worker
+    # Where the job writes its HTML report (the camera's history/, beside the result), or None for none.
+    report_dir: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,6 +111,7 @@ class JobOutcome:
     # Last stamp of the newest image track in the chosen group: tells whether a re-verification really used
     # the new drive-past, or only the older ones still in the window.
     newest_track_end_ns: int | None = None
+    report_path: str | None = None  # the job's HTML report, when written
 
 
 # ---------------------------------------------------------------------------------------------- the job
@@ -176,6 +185,9 @@ class _Progress:
     notes: list[str] = field(default_factory=list)
     detections: int = 0
     poses: int = 0
+    # For the report, written after the job's time limit: the calibrate() outcome and what it was given.
+    calibration: CalibrationOutcome | None = None
+    inputs: CalibrationInputs | None = None
 
     def failed(self, spec: JobSpec, message: str) -> JobOutcome:
         return JobOutcome(
@@ -207,9 +219,36 @@ def run_job(spec: JobSpec) -> JobOutcome:
         with _time_limit(spec.timeout_s) as armed:
             if not armed:
                 progress.notes.append("time limit not enforced: the job does not run on a main thread")
-            return _run_job(spec, progress)
+            outcome = _run_job(spec, progress)
     except JobTimeout:
         return progress.failed(spec, f"timed out after {spec.timeout_s:g} s")
+    # Outside the time limit: the answer is made; a report that fails only costs its note.
+    return _with_report(spec, outcome, progress)
+
+
+def _with_report(spec: JobSpec, outcome: JobOutcome, progress: _Progress) -> JobOutcome:
+    """Write the job's HTML report into spec.report_dir; never raises (a failure becomes a note)."""
+    if spec.report_dir is None or outcome.result_json is None or progress.calibration is None:
+        return outcome
+    assert progress.inputs is not None
+    try:
+        from daemon.report import write_report  # matplotlib: imported in the worker, when first needed
+        from daemon.state import history_name
+
+        result = CalibrationResult.model_validate_json(outcome.result_json)
+        path = Path(spec.report_dir) / history_name(result, ".html")
+        write_report(
+            result,
+            progress.calibration,
+            progress.inputs.vehicle,
+            progress.inputs.detections,
+            path,
+            notes=outcome.stage_notes,
+        )
+    except Exception as err:  # the report is a view of the answer, never a reason to lose it
+        note = f"report not written: {type(err).__name__}: {err}"
+        return replace(outcome, stage_notes=(*outcome.stage_notes, note))
+    return replace(outcome, report_path=str(path))
 
 
 def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
@@ -275,6 +314,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
                 created_at_ns=spec.created_at_ns,
                 map_fn=map_fn,
             )
+        progress.calibration, progress.inputs = outcome, inputs
         for report in outcome.stages:
             notes.append(f"{report.stage}: kept {report.kept}, discarded {report.discarded}")
             notes.extend(f"{report.stage}: {note}" for note in collapse_counted_notes(report.notes))

@@ -475,6 +475,7 @@ class Daemon:
             created_at_ns=now_ns,
             config_hash=self._config_hash,
             timeout_s=self.config.jobs.timeout_s,
+            report_dir=str(self.store.history_dir(camera_id)),
         )
         self.trackers[camera_id].mark_used(window)
         with self._lock:
@@ -583,6 +584,7 @@ class Daemon:
             finished_ns=now_ns,
             duration_s=duration_s,
             verdict=verdict,
+            report=outcome.report_path,
         )
         new_state = state.model_copy(
             update={

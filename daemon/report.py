@@ -230,7 +230,10 @@ def _map(
     data: _Boxes, R: np.ndarray, t: np.ndarray, camera: CameraModel, diagnostics: CalibrationDiagnostics
 ) -> bytes:
     centre = camera_center(R, t)
-    figure, axes = plt.subplots(figsize=(8.0, 7.0))
+    span = np.concatenate([data.poses[:, :2], centre[None, :2]])
+    low, high = span.min(axis=0) - 25.0, span.max(axis=0) + 25.0
+    aspect = (high[1] - low[1]) / (high[0] - low[0])
+    figure, axes = plt.subplots(figsize=(9.0, float(np.clip(7.5 * aspect + 1.2, 3.5, 11.0))))
     axes.add_patch(
         Polygon(
             _ground_of_view(R, t, camera, diagnostics),
@@ -254,7 +257,7 @@ def _map(
         vmax=max(0.3, float(np.nanpercentile(data.delta_p_m, 95))) if shown.any() else 0.3,
         label="its boxes (position at the stamp)",
     )
-    figure.colorbar(scatter, ax=axes, label="delta_p (m)")
+    figure.colorbar(scatter, ax=axes, label="delta_p (m)", shrink=0.6)
     axes.plot(*centre[:2], marker="^", color="#d62728", markersize=12, ls="", label="camera")
     axis_z = R[2]  # the optical axis in the local frame
     if np.hypot(axis_z[0], axis_z[1]) > 1e-6:
@@ -268,8 +271,6 @@ def _map(
     for index in np.unique(data.traversal):
         first = data.poses[data.traversal == index][0]
         axes.annotate(f"{index + 1}", first[:2], fontsize=9, color=_TRAVERSAL_COLOURS(index % 10))
-    span = np.concatenate([data.poses[:, :2], centre[None, :2]])
-    low, high = span.min(axis=0) - 25.0, span.max(axis=0) + 25.0
     axes.set_xlim(low[0], high[0])
     axes.set_ylim(low[1], high[1])
     axes.set_aspect("equal")
@@ -326,11 +327,14 @@ def _residuals(data: _Boxes) -> bytes:
 def _hypotheses(
     outcome: CalibrationOutcome, diagnostics: CalibrationDiagnostics, centre: np.ndarray, chosen_ids: set[int]
 ) -> bytes:
-    figure, (top, side) = plt.subplots(1, 2, figsize=(10.0, 4.8))
+    """Each track's hypothesis camera position by group: overview top down, then zoomed on the result (top
+    down and east against height), where the chosen group's members and the refined candidates lie."""
+    figure, (overview, zoom, side) = plt.subplots(1, 3, figsize=(13.0, 4.6))
     group_of: dict[int, int] = {}
     for number, group in enumerate(diagnostics.groups):
         for track_id in group:
             group_of.setdefault(track_id, number)
+    near: list[np.ndarray] = [centre]
     for hypothesis in diagnostics.hypotheses:
         c = hypothesis.camera_center
         group_number = group_of.get(hypothesis.track_id)
@@ -338,40 +342,59 @@ def _hypotheses(
         colour = "#bbbbbb" if group_number is None else _TRAVERSAL_COLOURS(group_number % 10)
         style = {
             "marker": "o",
-            "s": 60 if is_chosen else 22,
+            "s": 70 if is_chosen else 24,
             "color": colour,
             "edgecolors": "black" if is_chosen else "none",
             "linewidths": 1.2,
+            "zorder": 3,
         }
-        top.scatter(c[0], c[1], **style)
+        overview.scatter(c[0], c[1], **style)
+        zoom.scatter(c[0], c[1], **style)
         side.scatter(c[0], c[2], **style)
+        if group_number is not None or is_chosen:
+            near.append(c)
     for number in range(len(diagnostics.groups)):
-        top.scatter([], [], color=_TRAVERSAL_COLOURS(number % 10), s=22, label=f"group {number + 1}")
-    top.scatter([], [], color="#bbbbbb", s=22, label="in no group")
-    top.scatter([], [], color="white", edgecolors="black", s=60, label="chosen group's tracks")
+        overview.scatter([], [], color=_TRAVERSAL_COLOURS(number % 10), s=24, label=f"group {number + 1}")
+    overview.scatter([], [], color="#bbbbbb", s=24, label="in no group")
+    overview.scatter([], [], color="white", edgecolors="black", s=70, label="chosen group's tracks")
     for candidate in outcome.candidates:
         c = candidate.whole_box.camera_center
-        top.plot(c[0], c[1], "x", color="black", markersize=8)
-        side.plot(c[0], c[2], "x", color="black", markersize=8)
-    top.plot([], [], "x", color="black", label="refined candidates")
-    for axes, k in ((top, 1), (side, 2)):
+        near.append(c)
+        for axes, k in ((overview, 1), (zoom, 1), (side, 2)):
+            axes.plot(c[0], c[k], "x", color="black", markersize=9, mew=2, zorder=4)
+    overview.plot([], [], "x", color="black", mew=2, label="refined candidates")
+    for axes, k in ((overview, 1), (zoom, 1), (side, 2)):
         axes.plot(
             centre[0],
             centre[k],
             marker="*",
-            color="#d62728",
-            markersize=16,
+            mfc="none",
+            mec="#d62728",
+            mew=2,
+            markersize=20,
             ls="",
-            label="result" if k == 1 else None,
+            zorder=5,
+            label="result" if axes is overview else None,
         )
         axes.grid(alpha=0.3)
         axes.set_xlabel("east (m)")
-    top.set_ylabel("north (m)")
+    # The zoom shows the groups' members and candidates around the result (at least +-3 m).
+    points = np.array(near)
+    reach = max(3.0, 1.2 * float(np.max(np.abs(points - centre)[:, :2])) if len(points) > 1 else 3.0)
+    reach = min(reach, 50.0)
+    zoom.set_xlim(centre[0] - reach, centre[0] + reach)
+    zoom.set_ylim(centre[1] - reach, centre[1] + reach)
+    side.set_xlim(centre[0] - reach, centre[0] + reach)
+    side.set_ylim(centre[2] - reach, centre[2] + reach)
+    for axes in (overview, zoom):
+        axes.set_ylabel("north (m)")
+        axes.set_aspect("equal", adjustable="datalim" if axes is overview else "box")
     side.set_ylabel("up (m)")
-    top.set_aspect("equal", adjustable="datalim")
-    top.set_title("camera position of each track's hypothesis (EPnP), top down", fontsize=9)
+    side.set_aspect("equal", adjustable="box")
+    overview.set_title("hypotheses' camera positions (EPnP), top down", fontsize=9)
+    zoom.set_title(f"zoomed on the result (+-{reach:.0f} m)", fontsize=9)
     side.set_title("the same, east against height", fontsize=9)
-    top.legend(fontsize=7, loc="best", framealpha=0.7)
+    overview.legend(fontsize=7, loc="best", framealpha=0.7)
     figure.tight_layout()
     return _png(figure)
 
