@@ -167,7 +167,13 @@ def _cmd_status(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from daemon.demo import run_demo
 
-    return run_demo(preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout)
+    return run_demo(
+        preset=args.preset,
+        seed=args.seed,
+        rate=args.rate,
+        timeout_s=args.timeout,
+        keep_dir=Path(args.keep) if args.keep else None,
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -286,6 +292,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     demo.add_argument("--rate", type=float, default=20.0, help="time acceleration (default 20x)")
     demo.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds")
+    demo.add_argument(
+        "--keep",
+        metavar="DIR",
+        help="keep the daemon's recordings, results and reports in DIR (new or empty), plus simulation.mcap",
+    )
     demo.set_defaults(func=_cmd_demo)
     return parser
 

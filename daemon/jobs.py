@@ -226,29 +226,51 @@ def run_job(spec: JobSpec) -> JobOutcome:
     return _with_report(spec, outcome, progress)
 
 
+# One report at a time in a worker process: matplotlib's pyplot state is not thread-safe.
+_REPORT_LOCK = threading.Lock()
+
+
 def _with_report(spec: JobSpec, outcome: JobOutcome, progress: _Progress) -> JobOutcome:
-    """Write the job's HTML report into spec.report_dir; never raises (a failure becomes a note)."""
+    """Start the job's HTML report (spec.report_dir) on a thread of this worker and name it in the outcome.
+
+    Drawing takes seconds; the answer is published without waiting for it. Never raises: a report
+    directory that cannot be made is a note (no report named); a drawing that fails leaves a page saying
+    why at the named path.
+    """
     if spec.report_dir is None or outcome.result_json is None or progress.calibration is None:
         return outcome
     assert progress.inputs is not None
-    try:
-        from daemon.report import write_report  # matplotlib: imported in the worker, when first needed
-        from daemon.state import history_name
+    from daemon.state import history_name
 
-        result = CalibrationResult.model_validate_json(outcome.result_json)
-        path = Path(spec.report_dir) / history_name(result, ".html")
-        write_report(
-            result,
-            progress.calibration,
-            progress.inputs.vehicle,
-            progress.inputs.detections,
-            path,
-            notes=outcome.stage_notes,
-        )
-    except Exception as err:  # the report is a view of the answer, never a reason to lose it
+    result = CalibrationResult.model_validate_json(outcome.result_json)
+    directory = Path(spec.report_dir)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
         note = f"report not written: {type(err).__name__}: {err}"
         return replace(outcome, stage_notes=(*outcome.stage_notes, note))
+    path = directory / history_name(result, ".html")
+    arguments = (path, result, progress.calibration, progress.inputs, outcome.stage_notes)
+    threading.Thread(target=_draw_report, args=arguments, name="rsucal-report", daemon=True).start()
     return replace(outcome, report_path=str(path))
+
+
+def _draw_report(
+    path: Path,
+    result: CalibrationResult,
+    calibration: CalibrationOutcome,
+    inputs: CalibrationInputs,
+    notes: tuple[str, ...],
+) -> None:
+    """The report thread: the figures and the page, or a page with the reason they could not be drawn."""
+    with _REPORT_LOCK:
+        from daemon.report import write_report, write_report_failure  # matplotlib: only once needed
+
+        try:
+            write_report(result, calibration, inputs.vehicle, inputs.detections, path, notes=notes)
+        except Exception as err:  # the report is a view of the answer, never a reason to lose it
+            with contextlib.suppress(OSError):
+                write_report_failure(result, path, f"{type(err).__name__}: {err}", notes)
 
 
 def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:

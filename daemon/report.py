@@ -581,7 +581,7 @@ def report_html(result: CalibrationResult, figures: Figures, notes: Sequence[str
             f"<figcaption>{html.escape(name)}: {html.escape(caption)}</figcaption></figure>"
         )
     if not figures.png:
-        sections.append("<p>No figures: the run produced no pose to draw.</p>")
+        sections.append("<p>No figures (the notes say why).</p>")
     notes_html = "".join(f"<li>{html.escape(n)}</li>" for n in notes)
     title = f"rsucal calibration report: {result.rsu_id} / {result.camera_id}"
     return f"""<!DOCTYPE html>
@@ -626,6 +626,17 @@ def write_report(
             path.write_bytes(data)
             written.append(path)
     return written
+
+
+def write_report_failure(
+    result: CalibrationResult, html_path: Path, reason: str, notes: Sequence[str] = ()
+) -> Path:
+    """The report page without figures, saying why they could not be drawn (the result is still there)."""
+    text = report_html(result, Figures({}), [f"the figures could not be drawn: {reason}", *notes])
+    temporary = html_path.with_name(f".{html_path.name}.tmp")
+    temporary.write_text(text, encoding="utf-8")
+    temporary.replace(html_path)
+    return html_path
 
 
 # ---------------------------------------------------------------------------------------------- rsucal report

@@ -247,6 +247,8 @@ def test_job_writes_its_report_beside_the_result(scene: Scene, tmp_path: Path) -
     assert result.verdict.is_accepted
     expected = history / f"{CREATED_AT_NS:019d}-{result.result_id}.html"
     assert outcome.report_path == str(expected)
+    # Drawn on a thread of the worker after the answer is returned (the result is not held back for it).
+    wait_until(expected.exists, timeout_s=60.0)
     text = expected.read_text(encoding="utf-8")
     assert "Accepted: every validation gate passed" in text
     assert result.result_id in text and "http" not in text.replace("http-equiv", "")  # nothing fetched
@@ -254,6 +256,25 @@ def test_job_writes_its_report_beside_the_result(scene: Scene, tmp_path: Path) -
     assert result.quality is not None
     assert len(_embedded_pngs(text)) == result.quality.traversals + 5
     assert [p.name for p in history.iterdir()] == [expected.name]  # no temporary file left behind
+
+
+def test_a_report_that_cannot_be_drawn_says_why(
+    scene: Scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from daemon import report
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("no fonts on this RSU")
+
+    monkeypatch.setattr(report, "write_report", broken)
+    outcome = run_job(dataclasses.replace(scene.spec, report_dir=str(tmp_path), track_workers=1))
+    result = _result_of(outcome)
+    assert outcome.report_path is not None
+    page = Path(outcome.report_path)
+    wait_until(page.exists, timeout_s=60.0)
+    text = page.read_text(encoding="utf-8")
+    assert "the figures could not be drawn: RuntimeError: no fonts on this RSU" in text
+    assert result.result_id in text and "Accepted: every validation gate passed" in text
 
 
 def test_a_report_that_cannot_be_written_never_fails_the_job(scene: Scene, tmp_path: Path) -> None:
