@@ -187,6 +187,8 @@ def run_demo(
             stop.set()
             publisher.join(timeout=5.0)
             results = _read_calibrations(client, config)
+            if keep_dir is not None:
+                _wait_for_reports(statuses, started + timeout_s)
         finally:
             stop.set()
             for session in (client, publisher_session):
@@ -197,6 +199,13 @@ def run_demo(
         if keep_dir is not None:
             _describe_kept(sim, keep_dir, results, out)
         return code
+
+
+def _wait_for_reports(statuses: dict[str, CalibrationStatus], deadline: float) -> None:
+    """Jobs draw their reports after answering: keep the daemon and its job workers up until they exist."""
+    reports = [Path(s.last_job.report) for s in statuses.values() if s.last_job and s.last_job.report]
+    while not all(path.exists() for path in reports) and time.monotonic() < deadline:
+        time.sleep(0.1)
 
 
 def _describe_kept(
