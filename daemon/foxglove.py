@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
@@ -71,8 +72,10 @@ def _file_descriptor_set(descriptor: Descriptor) -> bytes:
 
 @functools.cache
 def protobuf_schema(name: str) -> MessageSchema:
-    """foxglove.{name} (LocationFix, ImageAnnotations, FrameTransform, CameraCalibration): an MCAP schema."""
+    """foxglove.{name} (LocationFix, ImageAnnotations, FrameTransform, CameraCalibration, CompressedImage) as
+    an MCAP schema."""
     classes: dict[str, Any] = {
+        "CompressedImage": CompressedImage,
         "LocationFix": LocationFix,
         "ImageAnnotations": ImageAnnotations,
         "FrameTransform": FrameTransform,

@@ -27,7 +27,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
@@ -264,10 +264,16 @@ def _draw_report(
 ) -> None:
     """The report thread: the figures and the page, or a page with the reason they could not be drawn."""
     with _REPORT_LOCK:
+        from daemon.recording import read_images
         from daemon.report import write_report, write_report_failure  # matplotlib: only once needed
 
+        def images(stamps: Sequence[int]) -> Mapping[int, bytes]:
+            return read_images([Path(p) for p in inputs.recordings], result.rsu_id, result.camera_id, stamps)
+
         try:
-            write_report(result, calibration, inputs.vehicle, inputs.detections, path, notes=notes)
+            write_report(
+                result, calibration, inputs.vehicle, inputs.detections, path, notes=notes, images=images
+            )
         except Exception as err:  # the report is a view of the answer, never a reason to lose it
             with contextlib.suppress(OSError):
                 write_report_failure(result, path, f"{type(err).__name__}: {err}", notes)

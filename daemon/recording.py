@@ -1026,6 +1026,52 @@ def read_recording(
     )
 
 
+def image_topic(rsu_id: str, camera_id: str) -> str:
+    """Topic of a camera's images (foxglove.CompressedImage, JPEG or PNG) when a recording holds them."""
+    return f"rsu/{rsu_id}/camera/{camera_id}/image"
+
+
+def read_images(
+    files: Sequence[Path], rsu_id: str, camera_id: str, stamps: Collection[int], tolerance_ns: int = 1_000_000
+) -> dict[int, bytes]:
+    """The recorded image (compressed bytes) nearest each of `stamps` within `tolerance_ns`, by stamp.
+
+    Reads foxglove.CompressedImage messages on image_topic(rsu_id, camera_id); stamps without an image
+    are left out (most recordings hold none). Damaged files and undecodable messages are skipped.
+    """
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from google.protobuf.message import DecodeError
+
+    wanted = sorted(stamps)
+    if not wanted:
+        return {}
+    topic = image_topic(rsu_id, camera_id)
+    found: dict[int, tuple[int, bytes]] = {}  # wanted stamp -> (|dt|, image)
+    low, high = wanted[0] - tolerance_ns, wanted[-1] + tolerance_ns
+    for path in files:
+        scan = _Scan()
+        try:
+            for channel, message in _iter_file(Path(path), scan):
+                if channel is None or channel.topic != topic or not low <= message.publish_time <= high:
+                    continue
+                try:
+                    image = CompressedImage.FromString(message.data)
+                except DecodeError:
+                    continue
+                stamp_ns = (
+                    image.timestamp.ToNanoseconds() if image.HasField("timestamp") else message.publish_time
+                )
+                i = bisect.bisect_left(wanted, stamp_ns)
+                for j in (i - 1, i):
+                    if 0 <= j < len(wanted) and abs(wanted[j] - stamp_ns) <= tolerance_ns:
+                        distance = abs(wanted[j] - stamp_ns)
+                        if wanted[j] not in found or distance < found[wanted[j]][0]:
+                            found[wanted[j]] = (distance, bytes(image.data))
+        except RecordingError as err:
+            logger.warning("images: %s", err)
+    return {stamp: image for stamp, (_, image) in found.items()}
+
+
 # ---------------------------------------------------------------------------------------------- windows
 
 

@@ -20,7 +20,7 @@ import base64
 import html
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +28,7 @@ import matplotlib
 
 matplotlib.use("Agg")  # headless: no display on a roadside computer, and never a GUI backend by accident
 
+import cv2
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.figure import Figure
@@ -147,22 +148,31 @@ def _png(figure: Figure) -> bytes:
     return buffer.getvalue()
 
 
+def _overlay_row(index: int, data: _Boxes) -> int:
+    """The box of drive-past `index` to draw: the largest (the vehicle closest to the camera)."""
+    rows = np.flatnonzero(data.traversal == index)
+    areas = (data.boxes[rows, 2] - data.boxes[rows, 0]) * (data.boxes[rows, 3] - data.boxes[rows, 1])
+    return int(rows[int(np.argmax(areas))])
+
+
 def _overlay(
     index: int,
+    row: int,
     data: _Boxes,
     frames_by_stamp: dict[int, DetectionFrame],
     R: np.ndarray,
     t: np.ndarray,
     camera: CameraModel,
     vehicle: VehicleProfile,
+    image: np.ndarray | None = None,
 ) -> bytes:
-    """The frame of drive-past `index` where the vehicle's box is largest: all boxes, the vehicle's box,
-    the cuboid projected with the result, and the vehicle's path on the ground."""
-    rows = np.flatnonzero(data.traversal == index)
-    areas = (data.boxes[rows, 2] - data.boxes[rows, 0]) * (data.boxes[rows, 3] - data.boxes[rows, 1])
-    row = int(rows[int(np.argmax(areas))])
+    """Row `row` of drive-past `index`: all boxes of its frame, the vehicle's box, the cuboid projected with
+    the result and the vehicle's path, on the recorded image (BGR) if there is one, else a rendered frame."""
     figure, axes = plt.subplots(figsize=(8.0, 8.0 * camera.height / camera.width + 0.6))
-    axes.add_patch(Rectangle((0, 0), camera.width, camera.height, color="#30343a"))
+    if image is not None:
+        axes.imshow(image[:, :, ::-1], extent=(0, image.shape[1], image.shape[0], 0))
+    else:
+        axes.add_patch(Rectangle((0, 0), camera.width, camera.height, color="#30343a"))
     frame = frames_by_stamp.get(int(data.stamps[row]))
     for box in frame.boxes if frame is not None else ():
         axes.add_patch(
@@ -447,13 +457,28 @@ def _uncertainty(result: CalibrationResult) -> bytes | None:
     return _png(figure)
 
 
+ImageSource = Callable[[Sequence[int]], Mapping[int, bytes]]
+"""Recorded images (compressed JPEG/PNG bytes) for detection stamps; stamps without one are left out."""
+
+
+def _decoded(images: Mapping[int, bytes], stamp_ns: int) -> np.ndarray | None:
+    data = images.get(stamp_ns)
+    if data is None:
+        return None
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    return image if image is not None and image.ndim == 3 else None  # undecodable: the rendered frame
+
+
 def render_figures(
     result: CalibrationResult,
     outcome: CalibrationOutcome,
     vehicle: VehicleProfile,
     detections: Sequence[DetectionFrame],
+    images: ImageSource | None = None,
 ) -> Figures:
-    """Every figure the run allows (a refused run may have no chosen group or no pose: fewer figures)."""
+    """Every figure the run allows (a refused run may have no chosen group or no pose: fewer figures).
+
+    `images` supplies recorded images for the overlays' frames, drawn under them when they decode."""
     png: dict[str, bytes] = {}
     diagnostics = outcome.diagnostics
     if diagnostics is None or result.R is None or result.t is None:
@@ -466,8 +491,13 @@ def render_figures(
     if chosen:
         data = _chosen_boxes(chosen, R, t, camera, vehicle)
         frames_by_stamp = {frame.stamp_ns: frame for frame in detections}
-        for index in sorted({int(i) for i in data.traversal}):
-            png[f"overlay-{index + 1}.png"] = _overlay(index, data, frames_by_stamp, R, t, camera, vehicle)
+        rows = {index: _overlay_row(index, data) for index in sorted({int(i) for i in data.traversal})}
+        recorded = images([int(data.stamps[row]) for row in rows.values()]) if images is not None else {}
+        for index, row in rows.items():
+            image = _decoded(recorded, int(data.stamps[row]))
+            png[f"overlay-{index + 1}.png"] = _overlay(
+                index, row, data, frames_by_stamp, R, t, camera, vehicle, image
+            )
         png["map.png"] = _map(data, R, t, camera, diagnostics)
         png["distance.png"] = _distance(data)
         png["residuals.png"] = _residuals(data)
@@ -610,9 +640,10 @@ def write_report(
     html_path: Path,
     png_dir: Path | None = None,
     notes: Sequence[str] = (),
+    images: ImageSource | None = None,
 ) -> list[Path]:
     """Write the HTML report (and, with `png_dir`, each figure as a PNG); the paths written, HTML first."""
-    figures = render_figures(result, outcome, vehicle, detections)
+    figures = render_figures(result, outcome, vehicle, detections, images)
     html_path = Path(html_path)
     html_path.parent.mkdir(parents=True, exist_ok=True)
     written = [html_path]
@@ -715,6 +746,16 @@ def run_report(
     notes.extend(
         f"{report.stage}: kept {report.kept}, discarded {report.discarded}" for report in outcome.stages
     )
+    images: ImageSource | None = None
+    if mcap_path is not None:
+        from daemon.recording import read_images
+
+        rsu_id, camera_id = loaded.inputs.rsu_id, loaded.inputs.camera_id
+        files = [Path(mcap_path)]
+
+        def images(stamps: Sequence[int]) -> Mapping[int, bytes]:
+            return read_images(files, rsu_id, camera_id, stamps)
+
     return write_report(
         result,
         outcome,
@@ -723,4 +764,5 @@ def run_report(
         Path(out_dir) / "report.html",
         Path(out_dir),
         notes,
+        images,
     )

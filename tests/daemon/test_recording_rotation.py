@@ -603,3 +603,33 @@ def test_recorder_writes_foxglove_views_beside_the_raw_channels(tmp_path: Path, 
     assert [(f.latitude, f.longitude, f.timestamp.ToNanoseconds()) for f in locations] == [
         (m.lat, m.lon, m.stamp_ns) for m in fixes
     ]
+
+
+def test_read_images_finds_the_recorded_image_nearest_each_stamp(tmp_path: Path) -> None:
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    from daemon import foxglove
+    from daemon.recording import image_topic, read_images
+
+    path = tmp_path / "images.mcap"
+    with RecordingWriter(path, chunk_size=4096) as writer:
+        for i in range(10):
+            image = CompressedImage(format="jpeg", data=bytes([i]) * 100, frame_id="cam")
+            image.timestamp.FromNanoseconds(T0 + i * 100_000_000)
+            topic = image_topic(RSU, "north" if i != 5 else "south")
+            writer.write_raw(
+                topic,
+                foxglove.protobuf_schema("CompressedImage"),
+                image.SerializeToString(),
+                T0,
+                T0 + i * 100_000_000,
+            )
+        writer.write_raw(
+            image_topic(RSU, "north"), foxglove.protobuf_schema("CompressedImage"), b"\xff\xff", T0, T0 + 3
+        )
+    wanted = [T0 + 200_000_000 + 400_000, T0 + 500_000_000, T0 + 700_000_000 + 2_000_000, T0]
+    found = read_images([path], RSU, "north", wanted)
+    # Within 1 ms: frame 2 and frame 0 (the undecodable message is skipped); frame 5 is another camera's,
+    # and 2 ms from frame 7 is too far.
+    assert found == {wanted[0]: bytes([2]) * 100, T0: bytes([0]) * 100}
+    assert read_images([path], RSU, "north", []) == {}

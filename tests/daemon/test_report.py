@@ -22,7 +22,7 @@ import pytest
 
 from daemon import cli, report
 from daemon.recording import write_simulation_mcap
-from pipeline.calibrate import CalibrationInputs, PipelineParams, calibrate
+from pipeline.calibrate import CalibrationInputs, CalibrationOutcome, PipelineParams, calibrate
 from pipeline.frames import UtmFrame, poses_from_v2x
 from pipeline.loaders import load_calibration_result, write_simulation_files
 from pipeline.metrics import result_from_ground_truth
@@ -234,8 +234,8 @@ def test_bad_data_file_exits_2_naming_it(scene: Scene, tmp_path: Path) -> None:
     assert str(broken) in line
 
 
-def test_report_errors_come_from_the_results_pose(scene: Scene) -> None:
-    """The figures' per-box delta_p and box error are the result's: the truth scores better than 1 m off."""
+@pytest.fixture(scope="module")
+def outcome(scene: Scene) -> CalibrationOutcome:
     sim = scene.sim
     camera = sim.cameras[0]
     poses, _ = poses_from_v2x(sim.v2x, UtmFrame(sim.origin.crs))
@@ -249,7 +249,48 @@ def test_report_errors_come_from_the_results_pose(scene: Scene) -> None:
         crs=sim.origin.crs,
         time_offset_ns=sim.ground_truth[camera.camera_id].clock_offset_ns,
     )
-    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0))
+    return calibrate(inputs, PipelineParams(), np.random.default_rng(0))
+
+
+def test_overlays_are_drawn_on_the_recorded_image_when_there_is_one(
+    scene: Scene, outcome: CalibrationOutcome
+) -> None:
+    """An image source answers for the overlays' frames: the first drive-past gets a recorded image (a
+    uniform magenta JPEG), the others none; they keep the rendered frame."""
+    sim = scene.sim
+    camera = sim.cameras[0]
+    result = outcome.result
+    asked: list[list[int]] = []
+    magenta = np.zeros((camera.intrinsics.height, camera.intrinsics.width, 3), np.uint8)
+    magenta[:] = (200, 30, 220)  # BGR
+    ok, jpeg = cv2.imencode(".jpg", magenta)
+    assert ok
+
+    def images(stamps: Sequence[int]) -> dict[int, bytes]:
+        asked.append(list(stamps))
+        return {stamps[0]: jpeg.tobytes()}
+
+    figures = report.render_figures(result, outcome, sim.vehicle, sim.detections[camera.camera_id], images)
+    assert result.quality is not None and len(asked) == 1 and len(asked[0]) == result.quality.traversals
+    frame_stamps = {f.stamp_ns for f in sim.detections[camera.camera_id]}
+    assert set(asked[0]) <= frame_stamps  # the overlays' frames are detection frames
+
+    def share(name: str, bgr: tuple[int, int, int]) -> float:
+        image = cv2.imdecode(np.frombuffer(figures.png[name], np.uint8), cv2.IMREAD_COLOR)
+        close = np.all(np.abs(image.astype(int) - np.array(bgr)) < 40, axis=2)
+        return float(close.mean())
+
+    assert share("overlay-1.png", (200, 30, 220)) > 0.3  # mostly the recorded image
+    assert share("overlay-1.png", (0x3A, 0x34, 0x30)) < 0.01
+    for index in range(2, result.quality.traversals + 1):
+        assert share(f"overlay-{index}.png", (200, 30, 220)) < 0.01
+        assert share(f"overlay-{index}.png", (0x3A, 0x34, 0x30)) > 0.3  # the rendered frame (#30343a)
+
+
+def test_report_errors_come_from_the_results_pose(scene: Scene, outcome: CalibrationOutcome) -> None:
+    """The figures' per-box delta_p and box error are the result's: the truth scores better than 1 m off."""
+    sim = scene.sim
+    camera = sim.cameras[0]
     assert outcome.diagnostics is not None and outcome.chosen is not None
     truth = result_from_ground_truth(sim.ground_truth[camera.camera_id], sim.rsu_id)
     assert truth.t is not None and truth.R is not None
