@@ -17,6 +17,7 @@ from pydantic import ValidationError
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig
+from sim.errors import SimulationError
 
 # Duplicated from daemon.offline (imported lazily, like every command's dependencies) for --help.
 DEFAULT_YAML_CRS = "EPSG:32632"
@@ -31,28 +32,40 @@ log = logging.getLogger("rsucal")
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from daemon.recording import write_simulation_mcap
-    from pipeline.loaders import write_simulation_files
-    from pipeline.simulate import PRESETS, simulate
+    from sim.files import write_simulation_files
+    from sim.simulate import PRESETS, simulate
 
     if args.preset not in PRESETS:
         raise InputError(
             "--preset", f"unknown preset {args.preset!r}; choose one of {', '.join(sorted(PRESETS))}"
         )
-    result = simulate(args.preset, seed=args.seed)
+    result = simulate(args.preset, seed=args.seed, ideal=args.ideal)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     mcap_path = write_simulation_mcap(result, out / "recording.mcap")
     written = [mcap_path, *write_simulation_files(result, out)]
     if args.preview:
-        from pipeline.preview import write_preview
+        from sim.preview import write_previews
 
-        written.append(write_preview(result, Path(args.preview)))
+        written.extend(write_previews(result, Path(args.preview)))
     frames = sum(len(f) for f in result.detections.values())
     boxes = sum(len(fr.boxes) for f in result.detections.values() for fr in f)
     print(
         f"preset {args.preset} seed {args.seed}: {len(result.cameras)} camera(s), {frames} frames, "
-        f"{boxes} boxes, {len(result.poses)} vehicle poses, {result.traffic_count} other vehicles"
+        f"{boxes} boxes, {len(result.poses)} vehicle poses, {len(result.v2x)} V2X messages, "
+        f"{result.traffic_count} other vehicles"
     )
+    truth = next(iter(result.ground_truth.values()), None)
+    if truth is not None:
+        v = result.vehicle
+        world = "ideal world" if result.is_ideal else "real world"
+        latencies = ", ".join(
+            f"{t.camera_id} {t.latency_ns / 1e6:.0f} ms" for t in result.ground_truth.values()
+        )
+        print(
+            f"  {world}: calibration vehicle {truth.vehicle_type} {v.length:.2f} x {v.width:.2f} x "
+            f"{v.height:.2f} m, V2X {truth.v2x}, camera latency {latencies} (in the ground truth only)"
+        )
     for path in written:
         print(f"  wrote {path}")
     return EXIT_OK
@@ -151,11 +164,25 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
     if not storage.state_dir.is_absolute():
         storage = storage.model_copy(update={"state_dir": (base / storage.state_dir).resolve()})
     zenoh_config = config.zenoh
-    if zenoh_config.config_file is not None and not zenoh_config.config_file.is_absolute():
-        zenoh_config = zenoh_config.model_copy(
-            update={"config_file": (base / zenoh_config.config_file).resolve()}
-        )
+    for name in ("config_file", "access_control_file"):
+        path = getattr(zenoh_config, name)
+        if path is not None and not path.is_absolute():
+            zenoh_config = zenoh_config.model_copy(update={name: (base / path).resolve()})
     return config.model_copy(update={"storage": storage, "zenoh": zenoh_config})
+
+
+def _cmd_access_control(args: argparse.Namespace) -> int:
+    from daemon.access import write_site_config
+    from pipeline.loaders import load_daemon_config
+
+    config_path = Path(args.config)
+    config = _resolve_relative_paths(load_daemon_config(config_path), config_path.parent)
+    out = write_site_config(config, Path(args.base), Path(args.out))
+    print(
+        f"wrote {out}: {args.base} with put rules for {len(config.vehicles)} vehicle(s) and "
+        f"{len(config.cameras)} camera(s) of rsu {config.rsu_id}; restart the node that enforces it"
+    )
+    return EXIT_OK
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -172,6 +199,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         seed=args.seed,
         rate=args.rate,
         timeout_s=args.timeout,
+        ideal=args.ideal,
         keep_dir=Path(args.keep) if args.keep else None,
     )
 
@@ -188,10 +216,24 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser(
         "simulate", help="generate a seeded RSU scenario: MCAP, toolbox YAML pair, ground truth"
     )
-    sim.add_argument("--preset", default="sil-west", help="scenario preset (default sil-west)")
+    from sim.presets import PRESETS  # plain data: cheap to import for the help text
+
+    sim.add_argument(
+        "--preset",
+        default="sil-west",
+        help=f"scenario preset (default sil-west): {', '.join(sorted(PRESETS))}",
+    )
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sim.add_argument("--out", required=True, help="output directory")
-    sim.add_argument("--preview", help="write a PNG of one busy frame here")
+    sim.add_argument(
+        "--preview",
+        help="write a PNG of one busy frame per camera here (PATH_<camera>.png when there are several)",
+    )
+    sim.add_argument(
+        "--ideal",
+        action="store_true",
+        help="the first simulator's world: cuboid boxes, no latency, i.i.d. jitter, IMU poses as V2X",
+    )
     sim.set_defaults(func=_cmd_simulate)
 
     ev = sub.add_parser(
@@ -265,12 +307,27 @@ def build_parser() -> argparse.ArgumentParser:
     dmn.add_argument("--config", required=True, help="rsu.yaml (see deploy/rsu.example.yaml)")
     dmn.set_defaults(func=_cmd_daemon)
 
+    acl = sub.add_parser(
+        "access-control",
+        help="write a secure Zenoh config whose access rules let each detector and vehicle publish only its "
+        "own keys",
+        description="Copy a secure Zenoh config (--base: deploy/zenoh/secure.json5 for a secure peer, "
+        "secure-router.json5 for a router) with one put rule per calibration vehicle (v2x/cam/{station_id}) "
+        "and per camera (its detections and images), bound to the certificate common names of rsu.yaml. "
+        "The daemon refuses to start (exit 2) when the rules it runs with do not match its config.",
+    )
+    acl.add_argument("--config", required=True, help="rsu.yaml: cameras, vehicles and their certificates")
+    acl.add_argument("--base", required=True, help="the Zenoh config to start from (its other rules stay)")
+    acl.add_argument("--out", required=True, help="the Zenoh config to write (JSON, valid JSON5)")
+    acl.set_defaults(func=_cmd_access_control)
+
     st = sub.add_parser("status", help="query calibration status and health over Zenoh, as a table")
     st.add_argument(
         "--connect",
         action="append",
         default=None,
-        help="Zenoh endpoint of the daemon or a router (repeatable; default tcp/127.0.0.1:7447)",
+        help="Zenoh endpoint of the daemon or a router (repeatable; default: those of --zenoh-config, "
+        "else tcp/127.0.0.1:7447)",
     )
     st.add_argument(
         "--zenoh-config",
@@ -291,7 +348,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--preset", default="sil-west", help="simulator preset (default sil-west, 2 cameras)")
     demo.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     demo.add_argument("--rate", type=float, default=20.0, help="time acceleration (default 20x)")
-    demo.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds")
+    demo.add_argument("--timeout", type=float, default=300.0, help="give up after this many seconds")
+    demo.add_argument(
+        "--ideal",
+        action="store_true",
+        help="the first simulator's world (cuboid boxes, no latency, IMU poses): every camera must calibrate",
+    )
     demo.add_argument(
         "--keep",
         metavar="DIR",
@@ -312,7 +374,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValidationError as err:
         print(f"error: {describe_validation_error(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (InputError, RecordingError) as err:
+    except (InputError, RecordingError, SimulationError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except RsucalError as err:

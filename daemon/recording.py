@@ -56,7 +56,7 @@ from schemas.messages import DetectionFrame, V2xPosition
 from schemas.results import CalibrationResult
 
 if TYPE_CHECKING:
-    from pipeline.simulate import SimulationResult
+    from sim.simulate import SimulationResult
 
 try:
     from zstandard import ZstdError as _ZstdError

@@ -24,17 +24,17 @@ from daemon.demo import BusMessage, demo_config, publish_messages, simulation_me
 from daemon.main import Daemon
 from daemon.recording import list_recordings, read_window
 from pipeline.camera import camera_center
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult, CalibrationStatus, Health
+from sim.simulate import SimulationResult, simulate
 
 RATE = 40.0  # time acceleration: the 251 s sil-west drive in ~6 s
 
 
 @pytest.fixture(scope="module")
 def sim() -> SimulationResult:
-    return simulate("sil-west", 0)
+    return simulate("sil-west", 0, ideal=True)  # the daemon's mechanics need a scene it calibrates
 
 
 @pytest.fixture(scope="module")

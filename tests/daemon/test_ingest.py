@@ -22,10 +22,10 @@ from daemon.ingest import (
     V2xIn,
 )
 from pipeline.frames import UtmFrame, pose_from_v2x
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import Box
 from schemas.config import DaemonConfig
 from schemas.messages import DetectionFrame, V2xPosition
+from sim.simulate import SimulationResult, simulate
 
 T0 = 1_700_000_000_000_000_000
 STATION = 4242  # the simulator's calibration vehicle
@@ -418,12 +418,12 @@ def test_configured_frame_is_used_for_poses() -> None:
 
 @pytest.fixture(scope="module")
 def sil_west() -> SimulationResult:
-    return simulate("sil-west", 0)  # 50 Hz V2X
+    return simulate("sil-west", 0, ideal=True)  # 50 Hz V2X (the IMU poses)
 
 
 @pytest.fixture(scope="module")
 def v2x_10hz() -> SimulationResult:
-    return simulate("v2x-10hz", 0)
+    return simulate("v2x-10hz", 0, ideal=True)
 
 
 @pytest.mark.parametrize("preset", ["sil-west", "v2x-10hz"])

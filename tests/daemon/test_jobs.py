@@ -47,10 +47,10 @@ from daemon.jobs import (
 )
 from daemon.recording import write_simulation_mcap
 from pipeline.calibrate import SOFTWARE_VERSION, PipelineParams
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import CameraIntrinsics
 from schemas.config import ChangeConfig, GatesConfig
 from schemas.results import CalibrationResult, CameraPosition, ReferenceFrame, Verdict
+from sim.simulate import SimulationResult, simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 CREATED_AT_NS = 1_800_000_000_000_000_000
@@ -67,7 +67,7 @@ class Scene:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
-    sim = simulate("sil-west", seed=0)
+    sim = simulate("sil-west", seed=0, ideal=True)
     mcap = write_simulation_mcap(sim, tmp_path_factory.mktemp("jobs") / "sil-west.mcap")
     camera = sim.cameras[0]
     stamps = [m.stamp_ns for m in sim.v2x]

@@ -50,10 +50,10 @@ from daemon.recording import detections_key, v2x_key
 from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
 from pipeline.metrics import result_from_ground_truth
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult, CalibrationStatus, Verdict
+from sim.simulate import SimulationResult, simulate
 
 RATE = 60.0  # time acceleration of the end-to-end tests: the 251 s sil-west drive in ~4 s
 NS_PER_S = 1_000_000_000
@@ -69,7 +69,7 @@ REFUSAL_REASONS = ["position std 0.82 m > 0.5 m", "rotation std 0.91 deg > 0.5 d
 
 @pytest.fixture(scope="module")
 def sim() -> SimulationResult:
-    return simulate("sil-west", 0)
+    return simulate("sil-west", 0, ideal=True)
 
 
 @pytest.fixture(scope="module")

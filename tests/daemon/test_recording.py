@@ -33,12 +33,12 @@ from pipeline.loaders import (
     load_toolbox_detections,
     load_toolbox_poses,
     load_vehicle,
-    write_simulation_files,
 )
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import Box, CameraIntrinsics
 from schemas.files import GroundTruth, GroundTruthFrame
 from schemas.messages import DetectionFrame, V2xPosition
+from sim.files import write_simulation_files
+from sim.simulate import SimulationResult, simulate
 
 T0 = 1_700_000_000_000_000_000
 RECEIVE_DELAY_NS = 25_000_000
@@ -548,7 +548,8 @@ def test_rejection_names_the_field(tmp_path: Path, mutate: object, field: str) -
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulationResult, Path]:
     out = tmp_path_factory.mktemp("sim")
-    result = simulate("single-traversal", seed=3)  # the smallest preset: one camera, one pass (~1 s)
+    # The smallest preset: one camera, one pass (~1 s).
+    result = simulate("single-traversal", seed=3, ideal=True)
     write_simulation_mcap(result, out / "recording.mcap")
     write_simulation_files(result, out)
     return result, out

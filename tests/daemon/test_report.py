@@ -24,10 +24,11 @@ from daemon import cli, report
 from daemon.recording import write_simulation_mcap
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome, PipelineParams, calibrate
 from pipeline.frames import UtmFrame, poses_from_v2x
-from pipeline.loaders import load_calibration_result, write_simulation_files
+from pipeline.loaders import load_calibration_result
 from pipeline.metrics import result_from_ground_truth
-from pipeline.simulate import SimulationResult, simulate
 from schemas.results import CalibrationResult, Verdict
+from sim.files import write_simulation_files
+from sim.simulate import SimulationResult, simulate
 
 FIGURES = ("map.png", "distance.png", "residuals.png", "hypotheses.png", "uncertainty.png")
 
@@ -59,7 +60,7 @@ class Scene:
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
     directory = tmp_path_factory.mktemp("report")
-    sim = simulate("carla-like", seed=0)
+    sim = simulate("carla-like", seed=0, ideal=True)  # the report is under test, not the method: its world
     write_simulation_files(sim, directory)
     write_simulation_mcap(sim, directory / "recording.mcap")
     result = directory / "result.json"

@@ -31,10 +31,10 @@ from pipeline.camera import (
 )
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x
-from pipeline.simulate import SimulatedCamera, SimulationResult, simulate
 from schemas.common import CameraIntrinsics
 from schemas.config import CameraConfig, GeoPoint, TriggerConfig
 from schemas.results import CalibrationResult, GroundPlane, ReferenceFrame, Verdict
+from sim.simulate import SimulatedCamera, SimulationResult, simulate
 
 S = 1_000_000_000
 T0 = 1_700_000_000_000_000_000
@@ -81,7 +81,7 @@ def scenes() -> dict[str, Scene]:
     """The simulator's scenes, once per module (about a second in all)."""
     result = {}
     for preset in ("sil-west", "v2x-10hz", "single-traversal"):
-        sim = simulate(preset, 0)
+        sim = simulate(preset, 0, ideal=True)
         poses, rejected = poses_from_v2x(sim.v2x, UtmFrame(sim.origin.crs))
         assert rejected == 0
         result[preset] = Scene(sim, [(p.stamp_ns, p.x, p.y) for p in poses])

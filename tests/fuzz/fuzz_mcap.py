@@ -30,8 +30,8 @@ from daemon.recording import (
     recording_name,
     v2x_key,
 )
-from pipeline.loaders import write_simulation_files
-from pipeline.simulate import SimulationResult, simulate
+from sim.files import write_simulation_files
+from sim.simulate import SimulationResult, simulate
 
 CHUNK_BYTES = 4096
 DETECTION_EVERY = 10
@@ -131,7 +131,7 @@ def _chunk_contents(data: bytes) -> tuple[tuple[tuple[int, int], ...], tuple[tup
 @functools.cache
 def simulation() -> SimulationResult:
     """The scene every MCAP and toolbox-pair fuzz test starts from (simulated once per process)."""
-    return simulate("carla-like", 0)
+    return simulate("carla-like", 0, ideal=True)
 
 
 @functools.cache

@@ -10,15 +10,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from daemon.offline import inputs_from_simulation as calibration_inputs
 from pipeline.calibrate import PipelineParams, calibrate
 from pipeline.metrics import evaluate_against_ground_truth
-from pipeline.simulate import calibration_inputs, simulate
+from sim.simulate import simulate
 
 pytestmark = pytest.mark.slow
 
 
 def test_portrait_camera_is_calibrated() -> None:
-    sim = simulate("portrait", seed=0)
+    sim = simulate("portrait", seed=0, ideal=True)
     (camera,) = sim.cameras
     inputs = calibration_inputs(sim, camera.camera_id)
     outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0))

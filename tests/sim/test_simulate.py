@@ -1,7 +1,11 @@
-"""The scenario simulator: determinism, rendering geometry, ground truth, pose reports, traffic, presets.
+"""The scenario simulator's ideal world: determinism, rendering geometry, ground truth, pose reports,
+traffic, presets.
 
-Scenes are shrunk presets (shorter arms, two traversals, little traffic) so the file runs in a few
-seconds; the geometry is checked against cv2.projectPoints, never against the simulator's own code.
+The ideal world (cuboid boxes, stamps at exposure, IMU poses as V2X) is the first simulator's, kept so that
+its numbers stay reproducible; its geometry is exact, so it is checked here to the micrometre against
+cv2.projectPoints, never against the simulator's own code. The real world has tests of its own
+(test_real_world.py, test_detector.py, test_shapes.py, test_roads.py, test_v2x.py). Scenes are shrunk
+presets (shorter arms, two traversals, little traffic) so the file runs in a few seconds.
 """
 
 from __future__ import annotations
@@ -15,16 +19,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.camera import CameraModel, camera_center, camera_rotation_from_view
-from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, v2x_from_pose
-from pipeline.sim_presets import PRESETS, DetectorSpec, ScenarioConfig
-from pipeline.sim_render import Instances, cuboid_corners, hidden_fractions, project_boxes, render_frames
-from pipeline.sim_traffic import DT_S, simulate_traffic
-from pipeline.sim_world import GroundSurface, build_network
-from pipeline.simulate import SimulationResult, simulate
 from pipeline.vehicle import footprint_corners
 from schemas.common import CameraIntrinsics
+from sim.detector import Instances, cuboid_corners, hidden_fractions, project_boxes, render_frames
+from sim.errors import SimulationError
+from sim.geometry import camera_position as camera_center
+from sim.geometry import mount_rotation as camera_rotation_from_view
+from sim.lens import Lens
+from sim.presets import PRESETS, DetectorSpec, ScenarioConfig
+from sim.simulate import SimulationResult, simulate
+from sim.traffic import DT_S, simulate_traffic
+from sim.world import GroundSurface, build_network
 
 CLEAN_DETECTOR = DetectorSpec(frame_jitter_s=0.0015)  # no box jitter, misses or false positives
 
@@ -34,8 +40,10 @@ def shrink(
     routes: tuple[str, ...] | None = None,
     traffic: int = 20,
     detector: DetectorSpec | None = None,
+    ideal: bool = True,
 ) -> ScenarioConfig:
-    """A faster variant: 260 m arms (connectors still ~300 m out), two traversals, little traffic."""
+    """A faster variant: 260 m arms (connectors still ~300 m out), two traversals, little traffic; in the
+    ideal world unless asked otherwise."""
     drive = replace(config.drive, routes=routes if routes is not None else config.drive.routes[:2])
     return replace(
         config,
@@ -43,6 +51,7 @@ def shrink(
         drive=drive,
         traffic=replace(config.traffic, count=traffic),
         detector=detector if detector is not None else config.detector,
+        ideal=ideal,
     )
 
 
@@ -88,7 +97,7 @@ def true_box(result: SimulationResult, camera_id: str, frame: int, distorted: bo
 
 
 def test_same_seed_gives_identical_output_and_another_seed_does_not() -> None:
-    config = shrink(PRESETS["sil-south"], routes=("W>E",), traffic=8)
+    config = shrink(PRESETS["sil-south"], routes=("W>E",), traffic=8, ideal=False)  # the real world
     a, b, c = simulate(config, 11), simulate(config, 11), simulate(config, 12)
 
     def dump(r: SimulationResult) -> tuple[object, ...]:
@@ -102,6 +111,7 @@ def test_same_seed_gives_identical_output_and_another_seed_does_not() -> None:
     assert np.array_equal(a.true_poses, b.true_poses)
     assert dump(a)[0] != dump(c)[0]
     assert dump(a)[1] != dump(c)[1]
+    assert [m.model_dump() for m in a.v2x] == [m.model_dump() for m in b.v2x]
 
 
 # --- rendering geometry (property tests) -------------------------------------------------------------
@@ -142,7 +152,7 @@ def test_box_is_the_clipped_tight_bounds_of_the_projected_corners(
         cy=603.0,
         dist=(setup["k1"], setup["k2"], 0.0, 0.0, 0.0),
     )
-    model = CameraModel.from_intrinsics(intr)
+    model = Lens.from_intrinsics(intr)
     R = camera_rotation_from_view(setup["yaw"], setup["pitch"], setup["roll"])
     t = -R @ np.array([0.0, 0.0, 10.0])
     forward = np.array([math.cos(setup["yaw"]), math.sin(setup["yaw"])])
@@ -212,19 +222,21 @@ def test_a_box_mostly_behind_a_nearer_one_is_dropped_and_the_nearer_one_kept() -
 
 def test_render_drops_hidden_tiny_and_behind_vehicles_and_never_detects_occluders() -> None:
     intr = CameraIntrinsics(width=1920, height=1080, fx=1200.0, fy=1200.0, cx=960.0, cy=540.0)
-    model = CameraModel.from_intrinsics(intr)
+    model = Lens.from_intrinsics(intr)
     R = camera_rotation_from_view(0.0, math.radians(15.0))
     t = -R @ np.array([0.0, 0.0, 8.0])
     # Frame 0: a car 30 m ahead; frame 1: the same car, a car behind the camera and one 600 m away.
     centres = np.array([[30.0, 0.0], [30.0, 0.0], [-20.0, 0.0], [600.0, 0.0]])
     poses = np.column_stack([centres, np.zeros((4, 4))])
-    corners = cuboid_corners(poses, np.tile([4.5, 1.8, 1.5], (4, 1)))
-    instances = Instances(np.array([0, 1, 1, 1]), corners, np.hypot(*centres.T), np.full(4, 4), np.arange(4))
+    car = cuboid_corners(np.zeros((1, 6)), np.array([[4.5, 1.8, 1.5]]))[0]  # about the footprint centre
+    owners = np.arange(4)
+    instances = Instances(np.array([0, 1, 1, 1]), poses, owners, np.hypot(*centres.T), np.full(4, 4), owners)
+    bodies = (car, car, car, car)
     wall = cuboid_corners(np.array([[12.0, 0.0, 0.0, 0.0, 0.0, 0.0]]), np.array([[0.5, 6.0, 9.0]]))
     rng = np.random.default_rng(0)
-    free = render_frames(instances, 2, np.zeros((0, 8, 3)), R, t, model, CLEAN_DETECTOR, rng)
+    free = render_frames(instances, bodies, 2, np.zeros((0, 8, 3)), R, t, model, CLEAN_DETECTOR, rng)
     assert [len(b) for b in free.boxes] == [1, 1]  # behind the camera and too small: dropped
-    hidden = render_frames(instances, 2, wall, R, t, model, CLEAN_DETECTOR, rng)
+    hidden = render_frames(instances, bodies, 2, wall, R, t, model, CLEAN_DETECTOR, rng)
     assert [len(b) for b in hidden.boxes] == [0, 0]  # the wall hides the car and is never detected itself
     # Owner 0 is the calibration vehicle (frame 0 only): detectable, but hidden, so no box.
     assert hidden.calib_row.tolist() == [-1, -1] and hidden.calib_detectable.tolist() == [True, False]
@@ -351,7 +363,9 @@ def test_v2x_messages_are_the_poses_in_wgs84(noisy: SimulationResult) -> None:
         )
         assert message.lat == pytest.approx(expected.lat, abs=1e-12)
         assert message.lon == pytest.approx(expected.lon, abs=1e-12)
-        assert message.heading_deg == pytest.approx(expected.heading_deg, abs=1e-9)
+        # Two independent methods (the world's geodesic azimuth, the pipeline's convergence formula):
+        # 1e-6 deg is 1e-7 m at a car's corner, far below anything a calibration could see.
+        assert message.heading_deg == pytest.approx(expected.heading_deg, abs=1e-6)
         assert (message.stamp_ns, message.alt, message.station_id) == (
             expected.stamp_ns,
             expected.alt,
@@ -369,7 +383,7 @@ def test_no_target_never_shows_the_vehicle() -> None:
             PRESETS["no-target"], duration_s=60.0, traffic=replace(PRESETS["no-target"].traffic, count=15)
         ),
         seed=2,
-    )
+    )  # the real world: nothing there either
     truth = result.ground_truth["south"]
     assert truth.traversals == 0
     assert all(f.calib_box is None and f.traversal is None for f in truth.frames)
@@ -391,7 +405,7 @@ def test_distortion_changes_the_boxes() -> None:
 
 
 def test_unknown_preset_is_refused_by_name() -> None:
-    with pytest.raises(InputError, match="no-such-preset"):
+    with pytest.raises(SimulationError, match="no-such-preset"):
         simulate("no-such-preset", seed=0)
 
 
@@ -445,7 +459,7 @@ def test_traffic_queues_without_overlap_and_followers_trail_the_vehicle() -> Non
 
 
 def test_bodies_rest_on_a_sloped_ground() -> None:
-    from pipeline.sim_traffic import surface_poses
+    from sim.traffic import surface_poses
 
     ground = GroundSurface(np.array([0.05, 0.0]), np.zeros((0, 4)))
     poses = surface_poses(

@@ -17,15 +17,20 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from pipeline.arrays import FloatArray, Mask, Pixels, Points3, Rotation, Vec3
-from pipeline.camera import CameraModel, camera_center, project_points, undistort_pixels
-from pipeline.errors import InputError
-from pipeline.metrics import touches_border
 from schemas.files import GroundTruthFrame
 from schemas.messages import DetectionFrame
+from sim.errors import SimulationError
+from sim.geometry import BoolArray, FloatArray, camera_position
+from sim.lens import Lens
 
 if TYPE_CHECKING:
-    from pipeline.simulate import SimulatedCamera, SimulationResult
+    from sim.simulate import SimulatedCamera, SimulationResult
+
+Mask = BoolArray
+Pixels = FloatArray
+Points3 = FloatArray
+# A box edge this close to the image border (px) was cut by it: the vehicle is not seen whole.
+BORDER_MARGIN_PX = 3.0
 
 Color = tuple[int, int, int]
 
@@ -33,6 +38,8 @@ Color = tuple[int, int, int]
 HIGHLIGHT_BGR: Color = (255, 0, 255)
 FOOTPRINT_BGR: Color = (0, 255, 0)
 OTHER_BOX_BGR: Color = (255, 190, 40)
+OUTLINE_BGR: Color = (40, 220, 255)
+INSET_RANGE_M = 150.0
 LANE_CENTRE_BGR: Color = (0, 200, 255)
 JUNCTION_CENTRE_BGR: Color = (60, 130, 150)
 ROAD_EDGE_BGR: Color = (225, 225, 225)
@@ -59,20 +66,27 @@ class _View:
     are treated as invisible instead of being drawn at a wrong place.
     """
 
-    def __init__(self, camera: CameraModel, R: Rotation, t: Vec3) -> None:
+    def __init__(self, camera: Lens, R: FloatArray, t: FloatArray) -> None:
         self.camera, self.R, self.t = camera, R, t
         w, h = camera.width, camera.height
         border = np.array(
             [[0, 0], [w / 2, 0], [w, 0], [w, h / 2], [w, h], [w / 2, h], [0, h], [0, h / 2]], dtype=np.float64
         )
-        xy = undistort_pixels(border, camera)
+        xy = camera.undistort(border)
         self.max_x = 1.2 * float(np.max(np.abs(xy[:, 0])))
         self.max_y = 1.2 * float(np.max(np.abs(xy[:, 1])))
 
     def project(self, points: Points3) -> tuple[Pixels, Mask, FloatArray]:
         """Local points (N, 3) -> pixels (N, 2), visibility (N,), depth (N,) m."""
-        pixels, depth = project_points(points, self.R, self.t, self.camera)
         points_cam = points @ self.R.T + self.t
+        depth = points_cam[:, 2]
+        pixels = np.full((len(points), 2), np.nan)
+        front = depth > 1e-9
+        if np.any(front):
+            projected, _ = cv2.projectPoints(
+                points_cam[front], np.zeros(3), np.zeros(3), self.camera.K, self.camera.dist
+            )
+            pixels[front] = projected.reshape(-1, 2)
         with np.errstate(divide="ignore", invalid="ignore"):
             x = points_cam[:, 0] / points_cam[:, 2]
             y = points_cam[:, 1] / points_cam[:, 2]
@@ -115,10 +129,10 @@ def _background(view: _View, ground_z: float) -> np.ndarray:
     u = (np.arange(0, cam.width, step) + step / 2).astype(np.float64)
     v = (np.arange(0, cam.height, step) + step / 2).astype(np.float64)
     uu, vv = np.meshgrid(u, v)
-    xy = undistort_pixels(np.column_stack([uu.ravel(), vv.ravel()]), cam)
+    xy = cam.undistort(np.column_stack([uu.ravel(), vv.ravel()]))
     rays = np.column_stack([xy, np.ones(len(xy))]) @ view.R  # local-frame directions
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    centre = camera_center(view.R, view.t)
+    centre = camera_position(view.R, view.t)
     down = -rays[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         distance = np.where(down > 1e-6, (centre[2] - ground_z) / down, np.inf)
@@ -206,7 +220,7 @@ def _scaled(colour: Color, factor: float) -> Color:
 
 def _draw_occluders(image: np.ndarray, view: _View, occluders: Sequence[tuple[str, FloatArray]]) -> None:
     """Flat-shaded faces of box-shaped occluders (kind, 8 corners: 4 bottom then 4 top), far faces first."""
-    centre = camera_center(view.R, view.t)
+    centre = camera_position(view.R, view.t)
     light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     faces: list[tuple[float, np.ndarray, Color]] = []
     fraction = np.linspace(0.0, 1.0, 17)[:-1]
@@ -280,6 +294,81 @@ def _draw_footprint(image: np.ndarray, view: _View, footprint: FloatArray) -> No
         )
 
 
+def _body_world_points(footprint: FloatArray, body: FloatArray) -> FloatArray:
+    """Body vertices (K, 3) about the footprint centre -> local frame, with the attitude the true footprint
+    (4, 3: rear-right, front-right, front-left, rear-left) shows."""
+    forward = footprint[1] - footprint[0]
+    left = footprint[3] - footprint[0]
+    x = forward / np.linalg.norm(forward)
+    y = left - x * float(left @ x)
+    y /= np.linalg.norm(y)
+    z = np.cross(x, y)
+    centre = footprint.mean(axis=0)
+    return np.asarray(centre + body @ np.stack([x, y, z]), dtype=np.float64)
+
+
+def _draw_outline(image: np.ndarray, view: _View, footprint: FloatArray, body: FloatArray) -> None:
+    """The calibration vehicle's true silhouette (the hull of its projected body), translucent, with its
+    edge: what the detector's box should bound."""
+    pixels, visible, _ = view.project(_body_world_points(footprint, body))
+    if int(visible.sum()) < 3:
+        return
+    hull = cv2.convexHull(_fixed(pixels[visible]).astype(np.int32))
+    overlay = image.copy()
+    cv2.fillConvexPoly(overlay, hull, OUTLINE_BGR, cv2.LINE_AA, _SUB)
+    cv2.addWeighted(overlay, 0.35, image, 0.65, 0.0, dst=image)
+    cv2.polylines(image, [hull], True, OUTLINE_BGR, 1, cv2.LINE_AA, _SUB)
+
+
+def _draw_inset(image: np.ndarray, result: SimulationResult, view: _View, focus: FloatArray | None) -> None:
+    """A top-down map in the bottom-right corner: lanes, the camera and the ground its image covers (up to
+    INSET_RANGE_M away), the calibration vehicle's true path and, if given, where it is in this frame."""
+    size = int(min(image.shape[0], image.shape[1]) * 0.36)
+    margin = 8
+    x0, y0 = image.shape[1] - size - margin, image.shape[0] - size - margin
+    panel = image[y0 : y0 + size, x0 : x0 + size]
+    panel[:] = (panel * 0.25 + 18).astype(np.uint8)
+    centre_cam = camera_position(view.R, view.t)
+    # Ground covered by the image: rays through the border, cut at the ground below the camera.
+    border = view.camera.undistort(view.camera.border_pixels(16))
+    rays = np.column_stack([border, np.ones(len(border))]) @ view.R
+    ground_z = float(result.world.ground_height(centre_cam[None, :2])[0])
+    down = -rays[:, 2]
+    reach = np.where(down > 1e-6, (centre_cam[2] - ground_z) / np.maximum(down, 1e-6), np.inf)
+    reach = np.minimum(reach, INSET_RANGE_M / np.maximum(np.hypot(rays[:, 0], rays[:, 1]), 1e-9))
+    covered = centre_cam[:2] + rays[:, :2] * reach[:, None]
+    span = np.concatenate([covered, centre_cam[None, :2]])
+    lo, hi = span.min(axis=0) - 15.0, span.max(axis=0) + 15.0
+    scale = (size - 2 * margin) / float(max(hi - lo))
+    mid = 0.5 * (lo + hi)
+
+    def to_px(xy: FloatArray) -> np.ndarray:
+        u = size / 2 + (xy[:, 0] - mid[0]) * scale
+        v = size / 2 - (xy[:, 1] - mid[1]) * scale  # north up
+        return np.round(np.column_stack([u, v]) * (1 << _SUB)).astype(np.int32)
+
+    cv2.fillPoly(panel, [to_px(covered)], (60, 70, 60), cv2.LINE_AA, _SUB)
+    for lane in result.world.lanes:
+        cv2.polylines(panel, [to_px(lane[:, :2])], False, LANE_CENTRE_BGR, 1, cv2.LINE_AA, _SUB)
+    path = result.true_poses[:, :2]
+    cv2.polylines(panel, [to_px(path)], False, HIGHLIGHT_BGR, 1, cv2.LINE_AA, _SUB)
+    cv2.circle(
+        panel,
+        tuple(int(c) for c in to_px(centre_cam[None, :2])[0]),
+        5 << _SUB,
+        (255, 255, 255),
+        -1,
+        cv2.LINE_AA,
+        _SUB,
+    )
+    if focus is not None:
+        cv2.polylines(panel, [to_px(focus[:, :2])], True, FOOTPRINT_BGR, 2, cv2.LINE_AA, _SUB)
+    cv2.rectangle(panel, (0, 0), (size - 1, size - 1), (200, 200, 200), 1)
+    cv2.putText(
+        panel, "N^  top-down", (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (230, 230, 230), 1, cv2.LINE_AA
+    )
+
+
 def _draw_legend(image: np.ndarray, lines: Sequence[str], keys: Sequence[tuple[Color, str]]) -> None:
     """Text panel in the top-left corner, scaled with the image width."""
     scale = max(0.4, image.shape[1] / 2400.0)
@@ -302,14 +391,14 @@ def _draw_legend(image: np.ndarray, lines: Sequence[str], keys: Sequence[tuple[C
 
 def _select_camera(result: SimulationResult, camera_id: str | None) -> SimulatedCamera:
     if not result.cameras:
-        raise InputError("simulation", "no cameras to preview")
+        raise SimulationError("simulation", "no cameras to preview")
     if camera_id is None:
         return result.cameras[0]
     for camera in result.cameras:
         if camera.camera_id == camera_id:
             return camera
     known = ", ".join(c.camera_id for c in result.cameras)
-    raise InputError("camera_id", f"camera_id = {camera_id!r} not in the simulation ({known})")
+    raise SimulationError("camera_id", f"camera_id = {camera_id!r} not in the simulation ({known})")
 
 
 def busiest_calib_frame(
@@ -332,7 +421,8 @@ def busiest_calib_frame(
         if row is None or row >= len(frames[i].boxes):
             return False, 0.0
         box = frames[i].boxes[row]
-        inside = not touches_border(np.array([[box.x1, box.y1, box.x2, box.y2]]), width, height)[0]
+        m = BORDER_MARGIN_PX
+        inside = box.x1 > m and box.y1 > m and box.x2 < width - m and box.y2 < height - m
         return bool(inside), (box.x2 - box.x1) * (box.y2 - box.y1)
 
     if not with_calib:
@@ -346,12 +436,12 @@ def render_preview(result: SimulationResult, camera_id: str | None = None) -> np
     """BGR uint8 image (height, width, 3) of one simulated camera (the first one by default) at the busiest
     frame in which the calibration vehicle is detected, drawn with the true extrinsic and distortion."""
     sim_camera = _select_camera(result, camera_id)
-    camera = CameraModel.from_intrinsics(sim_camera.intrinsics)
+    camera = Lens.from_intrinsics(sim_camera.intrinsics)
     R = np.asarray(sim_camera.R_cam_from_local, dtype=np.float64)
     t = np.asarray(sim_camera.t_cam_from_local, dtype=np.float64)
     view = _View(camera, R, t)
 
-    centre = camera_center(R, t)
+    centre = camera_position(R, t)
     ground_z = float(result.world.ground_height(centre[None, :2])[0])
     image = _background(view, ground_z)
     _draw_roads(image, view, result.world.lanes)
@@ -370,6 +460,9 @@ def render_preview(result: SimulationResult, camera_id: str | None = None) -> np
     else:
         frame = frames[index]
         calib_index = truth_frame.calib_box if truth_frame is not None else None
+        if truth_frame is not None and truth_frame.footprint_local is not None:
+            footprint = np.asarray(truth_frame.footprint_local, dtype=np.float64)
+            _draw_outline(image, view, footprint, result.calibration_body)
         _draw_boxes(image, frame, calib_index)
         # On top of the highlight: on a distant vehicle the footprint is only a few pixels across.
         if truth_frame is not None and truth_frame.footprint_local is not None:
@@ -385,14 +478,40 @@ def render_preview(result: SimulationResult, camera_id: str | None = None) -> np
         lines.append(
             f"{len(frame.boxes)} boxes in this frame, {status}; {result.traffic_count} other vehicles"
         )
+    focus = (
+        np.asarray(truth_frame.footprint_local, dtype=np.float64)
+        if truth_frame is not None and truth_frame.footprint_local is not None
+        else None
+    )
+    _draw_inset(image, result, view, focus)
+    world = (
+        "ideal world"
+        if result.is_ideal
+        else f"real world, latency {truth.latency_ns / 1e6:.0f} ms"
+        if truth
+        else ""
+    )
+    lines.append(f"{world}; calibration vehicle: {truth.vehicle_type if truth else '?'}")
     keys = [
         (HIGHLIGHT_BGR, f"calibration vehicle box (station {result.station_id})"),
-        (FOOTPRINT_BGR, "its true footprint"),
+        (OUTLINE_BGR, "its true outline"),
+        (FOOTPRINT_BGR, "its true footprint (data sheet)"),
         (OTHER_BOX_BGR, "other detections"),
         (LANE_CENTRE_BGR, "lane centre lines"),
     ]
     _draw_legend(image, lines, keys)
     return image
+
+
+def write_previews(result: SimulationResult, path: Path) -> list[Path]:
+    """One preview per camera: `path` itself for a single camera, PATH_<camera><suffix> for several."""
+    path = Path(path)
+    if len(result.cameras) <= 1:
+        return [write_preview(result, path)]
+    return [
+        write_preview(result, path.with_name(f"{path.stem}_{c.camera_id}{path.suffix}"), c.camera_id)
+        for c in result.cameras
+    ]
 
 
 def write_preview(result: SimulationResult, path: Path, camera_id: str | None = None) -> Path:
@@ -401,5 +520,7 @@ def write_preview(result: SimulationResult, path: Path, camera_id: str | None = 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), image):
-        raise InputError(str(path), "could not write the preview image (unknown suffix or unwritable path)")
+        raise SimulationError(
+            str(path), "could not write the preview image (unknown suffix or unwritable path)"
+        )
     return path
