@@ -24,11 +24,13 @@ from pipeline.frames import UtmFrame
 from schemas.common import (
     STAMP_NS_MAX,
     STAMP_NS_MIN,
+    TOOLBOX_CLASS_IDS,
     CameraIntrinsics,
     VehicleProfile,
     decode_json,
     decode_mapping,
     describe_validation_error,
+    toolbox_class_id,
 )
 from schemas.config import DaemonConfig
 from schemas.files import GroundTruth
@@ -421,7 +423,14 @@ def format_toolbox_detections(frames: Iterable[DetectionFrame]) -> str:
             # Fixed-point on purpose: YAML 1.1 reads "1e-05" (no dot) as a string, and `.2f` never
             # produces an exponent. Schema objects are finite, so no nan/inf can reach this.
             cx, cy = 0.5 * (box.x1 + box.x2), 0.5 * (box.y1 + box.y2)
-            lines.append(f"- [{cx:.2f}, {cy:.2f}, {box.x2 - box.x1:.2f}, {box.y2 - box.y1:.2f}, {box.cls}]")
+            class_id = toolbox_class_id(box.cls)
+            if class_id < 0:
+                raise InputError(
+                    "detections.yaml",
+                    f"{frame.stamp_ns}: cls = {box.cls!r} has no toolbox class id "
+                    f"({', '.join(f'{name} {i}' for name, i in TOOLBOX_CLASS_IDS.items())})",
+                )
+            lines.append(f"- [{cx:.2f}, {cy:.2f}, {box.x2 - box.x1:.2f}, {box.y2 - box.y1:.2f}, {class_id}]")
     return "\n".join(lines) + "\n" if lines else "{}\n"
 
 
