@@ -241,8 +241,16 @@ class Bus:
     subscriber callbacks never wait for either. Every query is finalised as soon as it is answered.
     """
 
-    def __init__(self, config: DaemonConfig, on_inbound: OnInbound, handlers: Handlers, clock: Clock) -> None:
+    def __init__(
+        self,
+        config: DaemonConfig,
+        on_inbound: OnInbound,
+        handlers: Handlers,
+        clock: Clock,
+        on_image: OnInbound | None = None,
+    ) -> None:
         self._config = config
+        self._on_image = on_image  # images of `rsu/{rsu}/camera/*/image`, only when a camera has a detector
         self._rsu_id = config.rsu_id
         self._camera_ids = tuple(camera.camera_id for camera in config.cameras)
         self._on_inbound = on_inbound
@@ -276,6 +284,10 @@ class Bus:
             # Input keys are those of the recordings (daemon.recording), with wildcards.
             for key in (detections_key(self._rsu_id, "*"), "v2x/cam/*"):
                 self._subscribers.append(session.declare_subscriber(key, on_sample))
+            if self._on_image is not None:
+                image_key = f"rsu/{self._rsu_id}/camera/*/image"
+                on_image = self._sample_callback(self._on_image)
+                self._subscribers.append(session.declare_subscriber(image_key, on_image))
             answers: dict[Kind, tuple[str, Callable[[zenoh.Query], None]]] = {
                 "calibration": (calibration_key(self._rsu_id, "*"), self._answer_calibration),
                 "status": (status_key(self._rsu_id, "*"), self._answer_status),
@@ -358,10 +370,10 @@ class Bus:
 
     # ------------------------------------------------------------------------------------------ inbound
 
-    def _sample_callback(self) -> Callable[[zenoh.Sample], None]:
+    def _sample_callback(self, target: OnInbound | None = None) -> Callable[[zenoh.Sample], None]:
         # Runs on Zenoh's callback thread for every sample: the least work possible (local names, no
         # attribute lookups on self), so ingest, not the bus, limits throughput.
-        on_inbound = self._on_inbound
+        on_inbound = self._on_inbound if target is None else target
         now_ns = self._clock.now_ns
 
         def on_sample(sample: zenoh.Sample) -> None:

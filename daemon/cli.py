@@ -135,7 +135,15 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
         zenoh_config = zenoh_config.model_copy(
             update={"config_file": (base / zenoh_config.config_file).resolve()}
         )
-    return config.model_copy(update={"storage": storage, "zenoh": zenoh_config})
+    cameras = [
+        camera.model_copy(
+            update={"detector": camera.detector.model_copy(update={"model": (base / camera.detector.model)})}
+        )
+        if camera.detector is not None and not camera.detector.model.is_absolute()
+        else camera
+        for camera in config.cameras
+    ]
+    return config.model_copy(update={"storage": storage, "zenoh": zenoh_config, "cameras": cameras})
 
 
 def _cmd_status(args: argparse.Namespace) -> int:

@@ -33,6 +33,7 @@ import zenoh
 from daemon import __version__
 from daemon.bus import Bus, Handlers, session_config
 from daemon.clock import Clock, SystemClock
+from daemon.detector import DetectorWorker, ImageRouter, build_workers
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
 from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
 from daemon.recording import RotatingRecorder, iter_v2x, list_recordings
@@ -154,6 +155,7 @@ class Daemon:
 
         self._runner: JobRunner | None = None
         self._bus: Bus | None = None
+        self._detectors: dict[str, DetectorWorker] = {}
         self._threads: list[threading.Thread] = []
         self.started_at_ns = self.clock.now_ns()
         self._next_prune = 0.0
@@ -163,6 +165,8 @@ class Daemon:
 
     def start(self) -> None:
         """Recover state, start job workers and threads, then go on the bus (BusError on a bad endpoint)."""
+        # Detector models load first: a bad one is a configuration error, before anything starts.
+        self._detectors = build_workers(self.config, self._on_inbound, self.counters, self.clock)
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self.recordings_dir.mkdir(parents=True, exist_ok=True)
         self._recover()
@@ -177,13 +181,19 @@ class Daemon:
         ]
         for thread in self._threads:
             thread.start()
+        for worker in self._detectors.values():
+            worker.start()
+        on_image = None
+        if self._detectors:
+            image_rejects = RejectLog(self.counters, self.config.ingest.warn_interval_s, self.clock)
+            on_image = ImageRouter(self.config.rsu_id, self._detectors, self.counters, image_rejects)
         handlers = Handlers(
             calibration=self._answer_calibration,
             status=self._answer_status,
             trigger=self._answer_trigger,
             health=self._answer_health,
         )
-        self._bus = Bus(self.config, self._on_inbound, handlers, self.clock)
+        self._bus = Bus(self.config, self._on_inbound, handlers, self.clock, on_image=on_image)
         try:
             self._bus.open()
         except BaseException:
@@ -204,6 +214,9 @@ class Daemon:
         """Stop input, drain, finish the MCAP file, persist, close the bus and the workers. Idempotent."""
         if self._bus is not None:
             self._bus.close()  # no new input, no more queries
+        # The detectors' frames go through the inbox: stop them before ingest drains it.
+        for worker in self._detectors.values():
+            worker.stop(timeout_s=DRAIN_BUDGET_S)
         self._stop.set()
         for thread in self._threads:
             thread.join(timeout=DRAIN_BUDGET_S + 0.5)
@@ -225,6 +238,10 @@ class Daemon:
     @property
     def failure(self) -> str | None:
         """Why one of the daemon's own threads died (the process must then exit non-zero), or None."""
+        if self._failure is None:
+            for camera_id, worker in self._detectors.items():
+                if worker.failure is not None:
+                    return f"detector of camera {camera_id}: {worker.failure}"
         return self._failure
 
     def _guarded(self, loop: Callable[[], None]) -> None:
@@ -469,6 +486,7 @@ class Daemon:
             created_at_ns=now_ns,
             config_hash=self._config_hash,
             timeout_s=self.config.jobs.timeout_s,
+            labels=None if camera.labels is None else dict(camera.labels),
         )
         self.trackers[camera_id].mark_used(window)
         with self._lock:

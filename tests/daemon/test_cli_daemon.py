@@ -18,6 +18,8 @@ def _example(tmp_path: Path) -> dict[str, object]:
     data = yaml.safe_load(EXAMPLE.read_text())
     data["storage"]["state_dir"] = str(tmp_path / "state")
     data["zenoh"] = {"listen": [f"tcp/127.0.0.1:{free_port()}"]}
+    # The example's detector camera needs the site's own model file: left out here.
+    data["cameras"] = [camera for camera in data["cameras"] if camera.get("detector") is None]
     return data
 
 
