@@ -14,6 +14,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from daemon.bridge_cli import add_bridge_parser
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig
@@ -256,6 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--rate", type=float, default=20.0, help="time acceleration (default 20x)")
     demo.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds")
     demo.set_defaults(func=_cmd_demo)
+
+    add_bridge_parser(sub)
     return parser
 
 
