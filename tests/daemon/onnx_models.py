@@ -111,6 +111,70 @@ def build_model(layout: str, width: int = 320, height: int = 256) -> onnx.ModelP
     return model
 
 
-def write_model(path: Path, layout: str, width: int = 320, height: int = 256) -> Path:
-    onnx.save(build_model(layout, width, height), str(path))
+# (output channels, stride) of a convolution stack sized like a small YOLO backbone (YOLOv8n: 8.7 GFLOPs at
+# 640 x 640); for benchmarks, so onnxruntime has a real network's arithmetic to do on every image.
+BACKBONE = (
+    (16, 2),
+    (32, 2),
+    (32, 1),
+    (32, 1),
+    (64, 2),
+    (64, 1),
+    (64, 1),
+    (64, 1),
+    (128, 2),
+    (128, 1),
+    (128, 1),
+    (256, 2),
+    (256, 1),
+    (256, 1),
+)
+
+
+def add_backbone(model: onnx.ModelProto, seed: int = 0) -> tuple[onnx.ModelProto, float]:
+    """`model` with BACKBONE's random-weight 3x3 convolutions (ReLU) run on its input and added to its
+    output times zero: the detections are unchanged, the work is a backbone's. Returns (model, GFLOPs)."""
+    rng = np.random.default_rng(seed)
+    graph = model.graph
+    _, channels, height, width = (d.dim_value for d in graph.input[0].type.tensor_type.shape.dim)
+    source, flops = graph.input[0].name, 0.0
+    nodes: list[onnx.NodeProto] = []
+    for index, (out_channels, stride) in enumerate(BACKBONE):
+        weight = (rng.standard_normal((out_channels, channels, 3, 3)) * (2.0 / (9 * channels)) ** 0.5).astype(
+            np.float32
+        )
+        height, width = (height + stride - 1) // stride, (width + stride - 1) // stride
+        flops += 2.0 * out_channels * channels * 9 * height * width
+        nodes += [
+            _const(f"bb_w{index}", weight),
+            helper.make_node(
+                "Conv",
+                [source, f"bb_w{index}"],
+                [f"bb_c{index}"],
+                kernel_shape=[3, 3],
+                pads=[1, 1, 1, 1],
+                strides=[stride, stride],
+            ),
+            helper.make_node("Relu", [f"bb_c{index}"], [f"bb_r{index}"]),
+        ]
+        source, channels = f"bb_r{index}", out_channels
+    output = graph.output[0].name
+    for node in graph.node:  # the old output becomes an intermediate
+        node.output[:] = [f"{name}_cells" if name == output else name for name in node.output]
+    nodes += [
+        helper.make_node("ReduceMean", [source], ["bb_mean"], keepdims=0),
+        _const("bb_zero", np.array(0.0, dtype=np.float32)),
+        helper.make_node("Mul", ["bb_mean", "bb_zero"], ["bb_nothing"]),
+        helper.make_node("Add", [f"{output}_cells", "bb_nothing"], [output]),
+    ]
+    graph.node.extend(nodes)
+    onnx.checker.check_model(model)
+    return model, flops / 1e9
+
+
+def write_model(path: Path, layout: str, width: int = 320, height: int = 256, backbone: bool = False) -> Path:
+    model = build_model(layout, width, height)
+    if backbone:
+        model, _ = add_backbone(model)
+    onnx.save(model, str(path))
     return path

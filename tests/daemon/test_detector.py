@@ -279,3 +279,10 @@ def test_daemon_refuses_a_missing_model_before_starting(tmp_path: Path) -> None:
         daemon.start()
     daemon.stop()
     assert list_recordings(tmp_path / "state" / "recordings", "r1") == []
+
+
+def test_the_benchmark_backbone_leaves_the_detections_unchanged(tmp_path: Path) -> None:
+    # bench.daemon's detector part times this model; its detections must still be the cell detector's.
+    model = write_model(tmp_path / "m.onnx", "yolov8", backbone=True)
+    found = OnnxDetector(_detector_config(model, "yolov8"), None, "d").detect(_image(CENTERED_SCENE))
+    assert _sorted(found.boxes, found.class_ids) == sorted(CENTERED_BOXES)
