@@ -304,7 +304,7 @@ class DetectorWorker:
     queue holds `queue_images`; a newer image drops the oldest waiting one (`images.<cam>.dropped`).
 
     Counters: images.<cam>.received, .detected (frames delivered), .dropped; rejections
-    images.rejected.<reason> (decode, stamp) with a rate-limited warning naming the field."""
+    images.rejected.<reason> (decode, size, stamp) with a rate-limited warning naming the field."""
 
     def __init__(
         self,
@@ -315,8 +315,10 @@ class DetectorWorker:
         counters: Counters,
         clock: Clock,
         warn_interval_s: float,
+        image_size: tuple[int, int] | None = None,
     ) -> None:
         self.camera_id = camera_id
+        self._image_size = image_size  # (width, height) of the intrinsics: boxes are in those pixels
         self._key = detections_key
         self._detector = detector
         self._deliver = deliver
@@ -384,6 +386,16 @@ class DetectorWorker:
         except ImageError as err:
             field = err.detail.split(":", 1)[0]
             self._rejects.reject("images", "decode", f"{where}: {err.detail}", field)
+            return
+        height, width = decoded.image.shape[:2]
+        if self._image_size is not None and (width, height) != self._image_size:
+            expected = f"{self._image_size[0]} x {self._image_size[1]}"
+            self._rejects.reject(
+                "images",
+                "size",
+                f"{where}: data: {width} x {height} px, but the camera's intrinsics are {expected}",
+                "data",
+            )
             return
         if self._last_stamp_ns is not None and decoded.stamp_ns <= self._last_stamp_ns:
             self._rejects.reject(
@@ -462,5 +474,6 @@ def build_workers(
             counters,
             clock,
             config.ingest.warn_interval_s,
+            image_size=(camera.intrinsics.width, camera.intrinsics.height),
         )
     return workers

@@ -2,9 +2,9 @@
 
 In: `rsu/{rsu}/camera/{cam}/image`, protobuf-encoded with the official schema (foxglove-schemas-protobuf),
 or Foxglove's JSON form of the same message (`data` base64). `decode_compressed_image` turns a payload
-into a stamped BGR image or raises ImageError naming the field. Out: `encode_compressed_image` and
-`add_image_channel` are what a producer (the simulator's export, a camera bridge) calls to publish or record
-images the daemon's detector reads.
+into a stamped BGR image or raises ImageError naming the field. Out: `put_image` (publish),
+`add_image_channel` + `encode_compressed_image` (record in MCAP) are what a producer (the simulator's
+export, a camera bridge) calls to publish or record images the daemon's detector reads.
 """
 
 from __future__ import annotations
@@ -74,6 +74,28 @@ def encode_compressed_image(
     message = CompressedImage(frame_id=frame_id, format=image_format, data=encoded.tobytes())
     message.timestamp.FromNanoseconds(stamp_ns)
     return bytes(message.SerializeToString())
+
+
+def put_image(
+    session: Any,
+    rsu_id: str,
+    camera_id: str,
+    image: ImageBgr,
+    stamp_ns: int,
+    image_format: Literal["jpeg", "png"] = "jpeg",
+) -> bytes:
+    """Publish a camera image where the daemon's detector reads it (`rsu/{rsu}/camera/{cam}/image`, a
+    zenoh.Session), encoded and declared as foxglove.CompressedImage protobuf; returns the payload sent."""
+    import zenoh
+
+    payload = encode_compressed_image(image, stamp_ns, camera_id, image_format)
+    session.put(
+        image_key(rsu_id, camera_id),
+        payload,
+        encoding=zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(SCHEMA_NAME),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
+    return payload
 
 
 def compressed_image_schema() -> bytes:

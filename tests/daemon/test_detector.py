@@ -174,7 +174,8 @@ def test_worker_drops_the_oldest_images_under_load_and_counts_bad_ones(tmp_path:
     config = _detector_config(write_model(tmp_path / "m.onnx", "yolov5"), "yolov5", queue_images=2)
     counters, gate = Counters(), _Gate()
     key = "rsu/r1/camera/cam/detections"
-    worker = DetectorWorker("cam", key, OnnxDetector(config, None, "d"), gate, counters, SystemClock(), 10.0)
+    detector = OnnxDetector(config, None, "d")
+    worker = DetectorWorker("cam", key, detector, gate, counters, SystemClock(), 10.0, image_size=(640, 400))
     image = _image(CENTERED_SCENE)
     worker.start()
     try:
@@ -185,8 +186,15 @@ def test_worker_drops_the_oldest_images_under_load_and_counts_bad_ones(tmp_path:
         assert counters.get("images.cam.dropped") == 8
         gate.release.set()
         wait_until(lambda: counters.get("images.cam.detected") == 3)
-        worker.offer(b"\x00garbage", 1)
-        worker.offer(encode_compressed_image(image, T0 + 5, "cam"), 1)  # older than the last: refused
+        # One at a time (the queue holds 2): each bad image is counted under its reason, then a good one.
+        bad = [
+            (b"\x00garbage", "decode"),
+            (encode_compressed_image(image[:200], T0 + 15, "cam"), "size"),  # not the intrinsics' size
+            (encode_compressed_image(image, T0 + 5, "cam"), "stamp"),  # older than the last delivered
+        ]
+        for payload, reason in bad:
+            worker.offer(payload, 1)
+            wait_until(lambda reason=reason: counters.get(f"images.rejected.{reason}") == 1)
         worker.offer(encode_compressed_image(image, T0 + 20, "cam", image_format="png"), 1)
         wait_until(lambda: counters.get("images.cam.detected") == 4)
     finally:
@@ -194,7 +202,8 @@ def test_worker_drops_the_oldest_images_under_load_and_counts_bad_ones(tmp_path:
     assert [frame["stamp_ns"] for frame in gate.frames] == [T0, T0 + 9, T0 + 10, T0 + 20]
     assert all(len(frame["boxes"]) == 3 for frame in gate.frames)  # type: ignore[arg-type]
     assert counters.get("images.rejected.decode") == 1 and counters.get("images.rejected.stamp") == 1
-    assert counters.get("images.cam.received") == 14
+    assert counters.get("images.rejected.size") == 1
+    assert counters.get("images.cam.received") == 15
 
 
 def _daemon_config(tmp_path: Path, port: int, model: Path) -> DaemonConfig:

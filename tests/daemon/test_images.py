@@ -113,3 +113,42 @@ def test_an_mcap_image_channel_carries_the_official_schema(tmp_path: object) -> 
     files = descriptor_pb2.FileDescriptorSet.FromString(schema.data).file
     assert {f.name for f in files} == {"foxglove/CompressedImage.proto", "google/protobuf/timestamp.proto"}
     assert decode_compressed_image(message.data).stamp_ns == T0
+
+
+def test_put_image_arrives_over_zenoh_decodable() -> None:
+    import zenoh
+    from helpers import free_port, wait_until
+
+    from daemon.bus import client_config
+    from daemon.images import put_image
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    listener_config = zenoh.Config()
+    listener_config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    listener_config.insert_json5("scouting/multicast/enabled", "false")
+    received: list[tuple[str, bytes, str]] = []
+    listener = zenoh.open(listener_config)
+    sender = None
+    try:
+        subscriber = listener.declare_subscriber(
+            "rsu/r1/camera/*/image",
+            lambda s: received.append((str(s.key_expr), s.payload.to_bytes(), str(s.encoding))),
+        )
+        sender = zenoh.open(client_config([endpoint]))
+        image = _picture()
+        # Connected once a publisher on the key sees the listener's subscriber.
+        publisher = sender.declare_publisher("rsu/r1/camera/cam/image")
+        wait_until(lambda: publisher.matching_status.matching)
+        publisher.undeclare()
+        sent = put_image(sender, "r1", "cam", image, T0, image_format="png")
+        wait_until(lambda: len(received) == 1)
+        subscriber.undeclare()
+    finally:
+        if sender is not None:
+            sender.close()
+        listener.close()
+    key, payload, encoding = received[0]
+    assert key == "rsu/r1/camera/cam/image" and payload == sent
+    assert encoding == "application/protobuf;foxglove.CompressedImage"
+    decoded = decode_compressed_image(payload)
+    assert decoded.stamp_ns == T0 and np.array_equal(decoded.image, image)
