@@ -11,6 +11,7 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY schemas ./schemas
 COPY pipeline ./pipeline
+COPY sim ./sim
 COPY daemon ./daemon
 # Every dependency ships binary wheels for linux x86_64 and aarch64: no compiler in either stage.
 RUN python3 -m venv /opt/rsucal && . /opt/rsucal/bin/activate && pip install .

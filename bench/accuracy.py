@@ -348,7 +348,7 @@ def run_seed(task: tuple[str, int]) -> list[Run]:
 
     from pipeline.calibrate import PipelineParams, calibrate
     from pipeline.metrics import evaluate_against_ground_truth, result_from_ground_truth
-    from pipeline.simulate import simulate
+    from sim.simulate import simulate
 
     preset, seed = task
     base: Run = {"preset": preset, "seed": seed}
@@ -584,7 +584,7 @@ def run_problems(runs: Sequence[Run]) -> list[tuple[Run, str]]:
 
 def _task_weight(preset: str) -> float:
     """Rough cost of one (preset, seed), to start the slow ones first."""
-    from pipeline.simulate import PRESETS
+    from sim.simulate import PRESETS
 
     config = PRESETS[preset]
     return len(config.cameras) * (config.traffic.count + 50) * (config.duration_s or 300.0)
@@ -639,7 +639,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         # Before numpy is imported here or in any worker (spawned workers inherit the environment).
         limit_threads(1)
-        from pipeline.simulate import PRESETS
+        from sim.simulate import PRESETS
 
         names = [p.strip() for p in args.presets.split(",") if p.strip()] or [
             p for p in PRESETS if p not in EXCLUDED_PRESETS

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from pipeline.calibrate import CalibrationInputs
-    from pipeline.simulate import SimulationResult
+    from sim.simulate import SimulationResult
 
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -31,9 +31,9 @@ def limit_threads(threads: int = 1) -> None:
 
 def inputs_for(sim: SimulationResult, camera_id: str) -> CalibrationInputs:
     """calibrate() inputs for one camera of a simulation, with the true clock offset as the known one."""
-    from pipeline.simulate import calibration_inputs
+    from daemon.offline import inputs_from_simulation
 
-    return calibration_inputs(sim, camera_id)
+    return inputs_from_simulation(sim, camera_id)
 
 
 @dataclass

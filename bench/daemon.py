@@ -193,7 +193,7 @@ def build_site(mix: Mix, pattern: str, passed_cameras: int | None = None) -> Sit
     import numpy as np
 
     from pipeline.frames import UtmFrame
-    from pipeline.simulate import simulate
+    from sim.simulate import simulate
 
     sim = simulate(SOURCE_PRESET, 0)
     frame = UtmFrame(sim.origin.crs)
@@ -1191,8 +1191,8 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
     from daemon.clock import ScaledClock
     from daemon.demo import demo_config, publish_messages, simulation_messages
     from daemon.main import Daemon, DaemonEvent
-    from pipeline.simulate import simulate
     from schemas.config import JobsConfig
+    from sim.simulate import simulate
 
     sim = simulate("long", seed)
     messages = simulation_messages(sim)

@@ -81,7 +81,7 @@ def run_calibrate(inputs: Any, seed: int) -> tuple[Any, float, float, dict[str, 
 def prepare_main(out_dir: Path, preset: str, seed: int, camera_id: str | None) -> int:
     """Child: simulate, write the MCAP, the job description and the camera's ground truth into out_dir."""
     from daemon.recording import write_simulation_mcap
-    from pipeline.simulate import simulate
+    from sim.simulate import simulate
 
     started = time.perf_counter()
     sim = simulate(preset, seed)

@@ -18,6 +18,7 @@ from daemon.bridge_cli import add_bridge_parser
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig
+from sim.errors import SimulationError
 
 # Duplicated from daemon.offline (imported lazily, like every command's dependencies) for --help.
 DEFAULT_YAML_CRS = "EPSG:32632"
@@ -32,8 +33,8 @@ log = logging.getLogger("rsucal")
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from daemon.recording import write_simulation_mcap
-    from pipeline.loaders import write_simulation_files
-    from pipeline.simulate import PRESETS, simulate
+    from sim.files import write_simulation_files
+    from sim.simulate import PRESETS, simulate
 
     if args.preset not in PRESETS:
         raise InputError(
@@ -45,7 +46,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     mcap_path = write_simulation_mcap(result, out / "recording.mcap")
     written = [mcap_path, *write_simulation_files(result, out)]
     if args.preview:
-        from pipeline.preview import write_preview
+        from sim.preview import write_preview
 
         written.append(write_preview(result, Path(args.preview)))
     frames = sum(len(f) for f in result.detections.values())
@@ -273,7 +274,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValidationError as err:
         print(f"error: {describe_validation_error(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (InputError, RecordingError) as err:
+    except (InputError, RecordingError, SimulationError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except RsucalError as err:

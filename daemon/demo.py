@@ -25,7 +25,6 @@ from daemon.recording import detections_key, v2x_key
 from pipeline.camera import camera_center
 from pipeline.frames import UtmFrame
 from pipeline.metrics import evaluate_against_ground_truth
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import decode_json
 from schemas.config import (
     CalibrationVehicle,
@@ -38,6 +37,7 @@ from schemas.config import (
     ZenohConfig,
 )
 from schemas.results import CalibrationResult, CalibrationStatus
+from sim.simulate import SimulationResult, simulate
 
 # Accuracy the demo requires, the pipeline benchmark's targets for the sil presets (bench/accuracy.py):
 # delta_p mean <= 0.25 m and e mean <= 0.8 %; and a camera position within 0.5 m of the truth.

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 from pyproj.exceptions import CRSError
@@ -31,6 +31,9 @@ from pipeline.loaders import load_intrinsics, load_toolbox_detections, load_tool
 from schemas.common import CameraIntrinsics, VehicleProfile
 from schemas.messages import VehiclePose
 from schemas.results import CalibrationResult
+
+if TYPE_CHECKING:
+    from sim.simulate import SimulationResult
 
 # The toolbox's poses.yaml is UTM without a zone; the reference data (and our simulator's German sites
 # but Dresden) are zone 32N. Only the WGS84 output depends on it: R, t live in the UTM frame itself.
@@ -363,3 +366,24 @@ def format_summary(result: CalibrationResult, written: Path | None = None) -> st
     if written is not None:
         lines.append(f"wrote        {written}")
     return "\n".join(lines)
+
+
+def inputs_from_simulation(result: SimulationResult, camera_id: str | None = None) -> CalibrationInputs:
+    """calibrate() inputs for one camera of a simulation (default: the first), with the simulated clock
+    offset passed as the known one, exactly as a recording of the same scene would be calibrated."""
+    camera = (
+        result.cameras[0]
+        if camera_id is None
+        else next(c for c in result.cameras if c.camera_id == camera_id)
+    )
+    return CalibrationInputs(
+        rsu_id=result.rsu_id,
+        camera_id=camera.camera_id,
+        intrinsics=camera.intrinsics,
+        vehicle=result.vehicle,
+        detections=result.detections[camera.camera_id],
+        poses=result.poses,
+        crs=result.origin.crs,
+        time_offset_ns=result.ground_truth[camera.camera_id].clock_offset_ns,
+        station_id=result.station_id,
+    )

@@ -54,7 +54,7 @@ from schemas.config import StorageConfig
 from schemas.messages import DetectionFrame, V2xPosition
 
 if TYPE_CHECKING:
-    from pipeline.simulate import SimulationResult
+    from sim.simulate import SimulationResult
 
 try:
     from zstandard import ZstdError as _ZstdError

@@ -21,14 +21,10 @@ from daemon import cli, offline
 from daemon.recording import write_simulation_mcap
 from pipeline.camera import rotation_angle_rad
 from pipeline.frames import UtmFrame, v2x_from_pose
-from pipeline.loaders import (
-    load_calibration_result,
-    load_toolbox_detections,
-    load_toolbox_poses,
-    write_simulation_files,
-)
-from pipeline.simulate import PRESETS, SimulationResult, simulate
+from pipeline.loaders import load_calibration_result, load_toolbox_detections, load_toolbox_poses
 from schemas.results import CalibrationResult
+from sim.files import write_simulation_files
+from sim.simulate import PRESETS, SimulationResult, simulate
 
 STAGES = ("association", "tracking", "hypotheses", "grouping", "refinement", "validation")
 

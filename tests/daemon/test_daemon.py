@@ -24,10 +24,10 @@ from daemon.demo import BusMessage, demo_config, publish_messages, simulation_me
 from daemon.main import Daemon
 from daemon.recording import list_recordings, read_window
 from pipeline.camera import camera_center
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult, CalibrationStatus, Health
+from sim.simulate import SimulationResult, simulate
 
 RATE = 40.0  # time acceleration: the 251 s sil-west drive in ~6 s
 

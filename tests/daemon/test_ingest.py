@@ -22,10 +22,10 @@ from daemon.ingest import (
     V2xIn,
 )
 from pipeline.frames import UtmFrame, pose_from_v2x
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import Box
 from schemas.config import DaemonConfig
 from schemas.messages import DetectionFrame, V2xPosition
+from sim.simulate import SimulationResult, simulate
 
 T0 = 1_700_000_000_000_000_000
 STATION = 4242  # the simulator's calibration vehicle

@@ -44,10 +44,10 @@ from daemon.jobs import (
 )
 from daemon.recording import write_simulation_mcap
 from pipeline.calibrate import SOFTWARE_VERSION, PipelineParams
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import CameraIntrinsics
 from schemas.config import ChangeConfig, GatesConfig
 from schemas.results import CalibrationResult, CameraPosition, ReferenceFrame, Verdict
+from sim.simulate import SimulationResult, simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 CREATED_AT_NS = 1_800_000_000_000_000_000

@@ -46,10 +46,10 @@ from daemon.recording import detections_key, v2x_key
 from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
 from pipeline.metrics import result_from_ground_truth
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult, CalibrationStatus, Verdict
+from sim.simulate import SimulationResult, simulate
 
 RATE = 60.0  # time acceleration of the end-to-end tests: the 251 s sil-west drive in ~4 s
 NS_PER_S = 1_000_000_000

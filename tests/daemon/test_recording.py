@@ -31,11 +31,11 @@ from pipeline.loaders import (
     load_toolbox_detections,
     load_toolbox_poses,
     load_vehicle,
-    write_simulation_files,
 )
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import Box
 from schemas.messages import DetectionFrame, V2xPosition
+from sim.files import write_simulation_files
+from sim.simulate import SimulationResult, simulate
 
 T0 = 1_700_000_000_000_000_000
 RECEIVE_DELAY_NS = 25_000_000

@@ -31,10 +31,10 @@ from pipeline.camera import (
 )
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x
-from pipeline.simulate import SimulatedCamera, SimulationResult, simulate
 from schemas.common import CameraIntrinsics
 from schemas.config import CameraConfig, GeoPoint, TriggerConfig
 from schemas.results import CalibrationResult, GroundPlane, ReferenceFrame, Verdict
+from sim.simulate import SimulatedCamera, SimulationResult, simulate
 
 S = 1_000_000_000
 T0 = 1_700_000_000_000_000_000

@@ -196,7 +196,7 @@ def test_build_context_holds_what_copy_needs_and_nothing_else() -> None:
                 assert wanted, f"COPY {source}: nothing in the project"
                 missing = [path for path in wanted if path not in context and not path.endswith(".pyc")]
                 assert not missing, f"COPY {source}: excluded by .dockerignore: {missing[:5]}"
-    package_files = [path for path in files if path.split("/")[0] in {"schemas", "pipeline", "daemon"}]
+    package_files = [path for path in files if path.split("/")[0] in {"schemas", "pipeline", "sim", "daemon"}]
     assert package_files and all(path in context for path in package_files if "__pycache__" not in path)
     for outside in ("tests/", "bench/", ".ci/", ".venv/", "deploy/make-test-certs.sh", "Dockerfile"):
         assert not any(path.startswith(outside) or path == outside for path in context), outside

@@ -42,10 +42,10 @@ from daemon.recording import v2x_key
 from daemon.state import StateStore
 from daemon.status import fetch_status, status_main
 from pipeline.metrics import result_from_ground_truth
-from pipeline.simulate import simulate
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult
+from sim.simulate import simulate
 
 ZENOH_DIR = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
 ANSWERED_S = 5.0  # an allowed query is answered within this (loopback; generous for loaded CI)

@@ -30,8 +30,8 @@ from daemon.recording import (
     recording_name,
     v2x_key,
 )
-from pipeline.loaders import write_simulation_files
-from pipeline.simulate import SimulationResult, simulate
+from sim.files import write_simulation_files
+from sim.simulate import SimulationResult, simulate
 
 CHUNK_BYTES = 4096
 DETECTION_EVERY = 10

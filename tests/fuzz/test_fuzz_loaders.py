@@ -23,8 +23,6 @@ from hypothesis import given
 from daemon.ingest import Counters, Decoder, RejectLog
 from pipeline.errors import InputError
 from pipeline.loaders import (
-    format_toolbox_detections,
-    format_toolbox_poses,
     load_daemon_config,
     load_intrinsics,
     load_toolbox_detections,
@@ -33,6 +31,7 @@ from pipeline.loaders import (
 )
 from schemas.common import Box
 from schemas.messages import DetectionFrame, VehiclePose
+from sim.files import format_toolbox_detections, format_toolbox_poses
 
 T0 = 1_700_000_000_000_000_000
 EXAMPLE_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "rsu.example.yaml"
@@ -60,7 +59,7 @@ def _example_config_text() -> str:
         return EXAMPLE_CONFIG.read_text(encoding="utf-8")
     # Without the deploy/ example: the demo's config for a simulated site, as an installer would write it.
     from daemon.demo import demo_config
-    from pipeline.simulate import simulate
+    from sim.simulate import simulate
 
     config = demo_config(simulate("sil-west", 0), Path("/var/lib/rsucal"), 7447)
     return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

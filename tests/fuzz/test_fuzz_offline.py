@@ -23,7 +23,8 @@ from hypothesis import strategies as st
 from daemon.cli import main
 from daemon.offline import OfflineInputs, load_offline_inputs
 from pipeline.errors import InputError, RecordingError
-from pipeline.loaders import format_toolbox_detections, format_toolbox_poses, load_toolbox_poses
+from pipeline.loaders import load_toolbox_poses
+from sim.files import format_toolbox_detections, format_toolbox_poses
 
 DIR = scratch_dir("rsucal-fuzz-offline-")
 damage = st.tuples(

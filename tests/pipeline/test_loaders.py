@@ -15,20 +15,18 @@ from hypothesis import strategies as st
 from pipeline.errors import InputError
 from pipeline.loaders import (
     _fast_parse_stamped_rows,
-    format_toolbox_detections,
-    format_toolbox_poses,
     load_calibration_result,
     load_ground_truth,
     load_intrinsics,
     load_toolbox_detections,
     load_toolbox_poses,
     load_vehicle,
-    write_simulation_files,
 )
 from schemas.common import Box, CameraIntrinsics, VehicleProfile
 from schemas.files import GroundTruth, GroundTruthFrame
 from schemas.messages import DetectionFrame, VehiclePose
 from schemas.results import CalibrationResult, ReferenceFrame, Verdict
+from sim.files import format_toolbox_detections, format_toolbox_poses, write_simulation_files
 
 T0 = 1_700_000_000_000_000_000
 INTRINSICS = CameraIntrinsics(

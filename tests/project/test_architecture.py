@@ -1,4 +1,5 @@
-"""Imports point one way, daemon -> pipeline -> schemas (DESIGN.md): checked on the real import graph."""
+"""Imports point one way, daemon -> pipeline -> schemas and sim -> schemas (DESIGN.md): checked on the real
+import graph."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-OUR_PACKAGES = {"schemas", "pipeline", "daemon", "tests", "bench"}
+OUR_PACKAGES = {"schemas", "pipeline", "sim", "daemon", "tests", "bench"}
 BUS_AND_RECORDING = ("zenoh", "mcap")
 
 
@@ -29,8 +30,8 @@ def _imported_top_levels(path: Path) -> set[str]:
     return names
 
 
-def test_pipeline_never_loads_zenoh_or_mcap() -> None:
-    modules = ["pipeline", *_module_names("pipeline")]
+def _modules_loaded_by_importing(modules: list[str]) -> set[str]:
+    """sys.modules of a fresh interpreter after importing `modules` (our tree first on its path)."""
     script = (
         "import importlib, json, sys\n"
         f"for name in {modules!r}:\n"
@@ -47,10 +48,30 @@ def test_pipeline_never_loads_zenoh_or_mcap() -> None:
     assert done.returncode == 0, done.stderr
     loaded = set(json.loads(done.stdout.strip().splitlines()[-1]))
     assert set(modules) <= loaded
+    return loaded
+
+
+def test_pipeline_never_loads_zenoh_or_mcap() -> None:
+    loaded = _modules_loaded_by_importing(["pipeline", *_module_names("pipeline")])
     for forbidden in BUS_AND_RECORDING:
         offenders = sorted(m for m in loaded if m == forbidden or m.startswith(forbidden + "."))
         assert not offenders, f"importing pipeline loaded {offenders}; only daemon/ may use {forbidden}"
     assert not [m for m in loaded if m == "daemon" or m.startswith("daemon.")], "pipeline imports daemon"
+    assert not [m for m in loaded if m == "sim" or m.startswith("sim.")], "pipeline imports the simulator"
+
+
+def test_the_simulated_world_loads_no_pipeline_module() -> None:
+    """The world must share no model with the method judged in it: importing every sim module loads
+    neither pipeline/ nor daemon/ (nor the bus)."""
+    loaded = _modules_loaded_by_importing(["sim", *_module_names("sim")])
+    ours = sorted(m for m in loaded if m.split(".")[0] in {"pipeline", "daemon", "zenoh", "mcap"})
+    assert not ours, f"importing sim loaded {ours}"
+
+
+def test_sim_imports_only_schemas_of_ours() -> None:
+    for path in sorted((ROOT / "sim").glob("*.py")):
+        bad = _imported_top_levels(path) & (OUR_PACKAGES - {"schemas", "sim"})
+        assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}; sim/ may import only schemas/"
 
 
 def test_schemas_import_nothing_of_ours() -> None:
@@ -61,7 +82,7 @@ def test_schemas_import_nothing_of_ours() -> None:
 
 def test_pipeline_imports_neither_daemon_nor_the_bus() -> None:
     for path in sorted((ROOT / "pipeline").glob("*.py")):
-        bad = _imported_top_levels(path) & {"daemon", "tests", "bench", *BUS_AND_RECORDING}
+        bad = _imported_top_levels(path) & {"daemon", "sim", "tests", "bench", *BUS_AND_RECORDING}
         assert not bad, f"{path.relative_to(ROOT)} imports {sorted(bad)}"
 
 

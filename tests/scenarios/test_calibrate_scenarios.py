@@ -12,10 +12,11 @@ from functools import cache
 import numpy as np
 import pytest
 
+from daemon.offline import inputs_from_simulation as calibration_inputs
 from pipeline.calibrate import CalibrationOutcome, PipelineParams, calibrate
 from pipeline.metrics import Evaluation, evaluate_against_ground_truth
-from pipeline.simulate import SimulationResult, calibration_inputs, simulate
 from pipeline.tracking import frames_from_detections, track_boxes
+from sim.simulate import SimulationResult, simulate
 
 pytestmark = pytest.mark.slow
 

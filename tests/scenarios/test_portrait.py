@@ -10,9 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from daemon.offline import inputs_from_simulation as calibration_inputs
 from pipeline.calibrate import PipelineParams, calibrate
 from pipeline.metrics import evaluate_against_ground_truth
-from pipeline.simulate import calibration_inputs, simulate
+from sim.simulate import simulate
 
 pytestmark = pytest.mark.slow
 

@@ -17,15 +17,20 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from pipeline.arrays import FloatArray, Mask, Pixels, Points3, Rotation, Vec3
-from pipeline.camera import CameraModel, camera_center, project_points, undistort_pixels
-from pipeline.errors import InputError
-from pipeline.metrics import touches_border
 from schemas.files import GroundTruthFrame
 from schemas.messages import DetectionFrame
+from sim.errors import SimulationError
+from sim.geometry import BoolArray, FloatArray, camera_position
+from sim.lens import Lens
 
 if TYPE_CHECKING:
-    from pipeline.simulate import SimulatedCamera, SimulationResult
+    from sim.simulate import SimulatedCamera, SimulationResult
+
+Mask = BoolArray
+Pixels = FloatArray
+Points3 = FloatArray
+# A box edge this close to the image border (px) was cut by it: the vehicle is not seen whole.
+BORDER_MARGIN_PX = 3.0
 
 Color = tuple[int, int, int]
 
@@ -59,20 +64,27 @@ class _View:
     are treated as invisible instead of being drawn at a wrong place.
     """
 
-    def __init__(self, camera: CameraModel, R: Rotation, t: Vec3) -> None:
+    def __init__(self, camera: Lens, R: FloatArray, t: FloatArray) -> None:
         self.camera, self.R, self.t = camera, R, t
         w, h = camera.width, camera.height
         border = np.array(
             [[0, 0], [w / 2, 0], [w, 0], [w, h / 2], [w, h], [w / 2, h], [0, h], [0, h / 2]], dtype=np.float64
         )
-        xy = undistort_pixels(border, camera)
+        xy = camera.undistort(border)
         self.max_x = 1.2 * float(np.max(np.abs(xy[:, 0])))
         self.max_y = 1.2 * float(np.max(np.abs(xy[:, 1])))
 
     def project(self, points: Points3) -> tuple[Pixels, Mask, FloatArray]:
         """Local points (N, 3) -> pixels (N, 2), visibility (N,), depth (N,) m."""
-        pixels, depth = project_points(points, self.R, self.t, self.camera)
         points_cam = points @ self.R.T + self.t
+        depth = points_cam[:, 2]
+        pixels = np.full((len(points), 2), np.nan)
+        front = depth > 1e-9
+        if np.any(front):
+            projected, _ = cv2.projectPoints(
+                points_cam[front], np.zeros(3), np.zeros(3), self.camera.K, self.camera.dist
+            )
+            pixels[front] = projected.reshape(-1, 2)
         with np.errstate(divide="ignore", invalid="ignore"):
             x = points_cam[:, 0] / points_cam[:, 2]
             y = points_cam[:, 1] / points_cam[:, 2]
@@ -115,10 +127,10 @@ def _background(view: _View, ground_z: float) -> np.ndarray:
     u = (np.arange(0, cam.width, step) + step / 2).astype(np.float64)
     v = (np.arange(0, cam.height, step) + step / 2).astype(np.float64)
     uu, vv = np.meshgrid(u, v)
-    xy = undistort_pixels(np.column_stack([uu.ravel(), vv.ravel()]), cam)
+    xy = cam.undistort(np.column_stack([uu.ravel(), vv.ravel()]))
     rays = np.column_stack([xy, np.ones(len(xy))]) @ view.R  # local-frame directions
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    centre = camera_center(view.R, view.t)
+    centre = camera_position(view.R, view.t)
     down = -rays[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         distance = np.where(down > 1e-6, (centre[2] - ground_z) / down, np.inf)
@@ -206,7 +218,7 @@ def _scaled(colour: Color, factor: float) -> Color:
 
 def _draw_occluders(image: np.ndarray, view: _View, occluders: Sequence[tuple[str, FloatArray]]) -> None:
     """Flat-shaded faces of box-shaped occluders (kind, 8 corners: 4 bottom then 4 top), far faces first."""
-    centre = camera_center(view.R, view.t)
+    centre = camera_position(view.R, view.t)
     light = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     faces: list[tuple[float, np.ndarray, Color]] = []
     fraction = np.linspace(0.0, 1.0, 17)[:-1]
@@ -302,14 +314,14 @@ def _draw_legend(image: np.ndarray, lines: Sequence[str], keys: Sequence[tuple[C
 
 def _select_camera(result: SimulationResult, camera_id: str | None) -> SimulatedCamera:
     if not result.cameras:
-        raise InputError("simulation", "no cameras to preview")
+        raise SimulationError("simulation", "no cameras to preview")
     if camera_id is None:
         return result.cameras[0]
     for camera in result.cameras:
         if camera.camera_id == camera_id:
             return camera
     known = ", ".join(c.camera_id for c in result.cameras)
-    raise InputError("camera_id", f"camera_id = {camera_id!r} not in the simulation ({known})")
+    raise SimulationError("camera_id", f"camera_id = {camera_id!r} not in the simulation ({known})")
 
 
 def busiest_calib_frame(
@@ -332,7 +344,8 @@ def busiest_calib_frame(
         if row is None or row >= len(frames[i].boxes):
             return False, 0.0
         box = frames[i].boxes[row]
-        inside = not touches_border(np.array([[box.x1, box.y1, box.x2, box.y2]]), width, height)[0]
+        m = BORDER_MARGIN_PX
+        inside = box.x1 > m and box.y1 > m and box.x2 < width - m and box.y2 < height - m
         return bool(inside), (box.x2 - box.x1) * (box.y2 - box.y1)
 
     if not with_calib:
@@ -346,12 +359,12 @@ def render_preview(result: SimulationResult, camera_id: str | None = None) -> np
     """BGR uint8 image (height, width, 3) of one simulated camera (the first one by default) at the busiest
     frame in which the calibration vehicle is detected, drawn with the true extrinsic and distortion."""
     sim_camera = _select_camera(result, camera_id)
-    camera = CameraModel.from_intrinsics(sim_camera.intrinsics)
+    camera = Lens.from_intrinsics(sim_camera.intrinsics)
     R = np.asarray(sim_camera.R_cam_from_local, dtype=np.float64)
     t = np.asarray(sim_camera.t_cam_from_local, dtype=np.float64)
     view = _View(camera, R, t)
 
-    centre = camera_center(R, t)
+    centre = camera_position(R, t)
     ground_z = float(result.world.ground_height(centre[None, :2])[0])
     image = _background(view, ground_z)
     _draw_roads(image, view, result.world.lanes)
@@ -401,5 +414,7 @@ def write_preview(result: SimulationResult, path: Path, camera_id: str | None = 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), image):
-        raise InputError(str(path), "could not write the preview image (unknown suffix or unwritable path)")
+        raise SimulationError(
+            str(path), "could not write the preview image (unknown suffix or unwritable path)"
+        )
     return path

@@ -16,9 +16,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from pipeline.arrays import FloatArray, IntArray, PoseArray
-from pipeline.sim_presets import DriveSpec, TrafficSpec
-from pipeline.sim_world import (
+from sim.geometry import FloatArray, IntArray
+from sim.presets import DriveSpec, TrafficSpec
+from sim.world import (
     PATH_STEP_M,
     GroundSurface,
     Path,
@@ -135,7 +135,7 @@ class VehicleStates:
     (local frame, the body resting on the ground), speed (N,) m/s, and the traversal index (N,), -1 when
     the vehicle is not on a traversal."""
 
-    center_poses: PoseArray
+    center_poses: FloatArray
     speed: FloatArray
     traversal: IntArray
 
@@ -162,7 +162,7 @@ def sample_vehicle(vehicle: SimVehicle, t: FloatArray, ground: GroundSurface) ->
 
 def surface_poses(
     xy: FloatArray, heading: FloatArray, length: float, width: float, ground: GroundSurface
-) -> PoseArray:
+) -> FloatArray:
     """Footprint-centre poses (N, 6) of bodies resting on the ground: z from the four wheel contacts,
     pitch from the axles' height difference (positive = nose down, R = Rz Ry Rx), roll from the sides'."""
     forward = np.stack([np.cos(heading), np.sin(heading)], axis=1)

@@ -3,8 +3,8 @@
 It produces what a real RSU system receives, plus the truth: every camera's detection frames (camera
 clock, 10 fps with jitter), the calibration vehicle's own pose reports (absolute UTM, its own clock, with
 noise, drift, dropouts) and the same as V2X broadcasts (WGS84, true-north heading), and per camera the true
-extrinsic and which box is the calibration vehicle in every frame. The world (sim_world), the traffic
-(sim_traffic) and the detector (sim_render) are described in their modules; presets in sim_presets.
+extrinsic and which box is the calibration vehicle in every frame. The world (sim.world), the traffic
+(sim.traffic) and the detector (sim.detector) are described in their modules; presets in sim.presets.
 Everything random comes from np.random.default_rng(seed) via one child generator per component.
 """
 
@@ -12,25 +12,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.arrays import FloatArray, PoseArray, Rotation, Stamps, Vec3
-from pipeline.camera import CameraModel, camera_center, camera_rotation_from_view
-from pipeline.errors import InputError
-from pipeline.frames import UtmFrame
-from pipeline.sim_presets import PRESETS, CameraSpec, PoseSpec, ScenarioConfig
-from pipeline.sim_render import (
-    Instances,
-    RenderedFrames,
-    cuboid_corners,
-    field_of_view_bounds,
-    may_be_in_view,
-    render_frames,
-)
-from pipeline.sim_traffic import SimVehicle, TrafficResult, sample_vehicle, simulate_traffic
-from pipeline.sim_world import (
+from schemas.common import Box, CameraIntrinsics, LocalOrigin, VehicleProfile
+from schemas.files import GroundTruth, GroundTruthFrame
+from schemas.messages import DetectionFrame, V2xAccuracies, V2xPosition, VehiclePose
+from sim.detector import Instances, RenderedFrames, cuboid_corners, may_be_in_view, render_frames
+from sim.errors import SimulationError
+from sim.geo import GeoFrame
+from sim.geometry import FloatArray, IntArray, camera_position, mount_rotation
+from sim.lens import Lens
+from sim.presets import PRESETS, CameraSpec, PoseSpec, ScenarioConfig
+from sim.shapes import cuboid_points, footprint_points, place_points, reference_from_footprint_centre
+from sim.traffic import SimVehicle, TrafficResult, sample_vehicle, simulate_traffic
+from sim.world import (
     GroundSurface,
     Occluder,
     WorldGeometry,
@@ -38,10 +34,6 @@ from pipeline.sim_world import (
     build_occluders,
     lane_polylines,
 )
-from pipeline.vehicle import body_corners, footprint_corners, reference_from_center_footprint
-from schemas.common import Box, CameraIntrinsics, LocalOrigin, VehicleProfile
-from schemas.files import GroundTruth, GroundTruthFrame
-from schemas.messages import DetectionFrame, V2xAccuracies, V2xPosition, VehiclePose
 
 __all__ = [
     "PRESETS",
@@ -57,23 +49,19 @@ __all__ = [
 _STREAMS = ("clock", "drive", "traffic", "pose", "frames")
 
 
-if TYPE_CHECKING:
-    from pipeline.calibrate import CalibrationInputs
-
-
 @dataclass(frozen=True)
 class SimulatedCamera:
     """One simulated camera: intrinsics and the true extrinsic X_cam = R @ X_local + t (local frame, m)."""
 
     camera_id: str
     intrinsics: CameraIntrinsics
-    R_cam_from_local: Rotation
-    t_cam_from_local: Vec3
+    R_cam_from_local: FloatArray  # (3, 3)
+    t_cam_from_local: FloatArray  # (3,)
 
 
 @dataclass(frozen=True)
 class SimulationResult:
-    """Everything a simulated scenario produces (see pipeline/simulate.py's module docstring)."""
+    """Everything a simulated scenario produces (see the module docstring)."""
 
     preset: str
     seed: int
@@ -88,15 +76,15 @@ class SimulationResult:
     ground_truth: dict[str, GroundTruth]  # camera_id -> truth
     world: WorldGeometry
     traffic_count: int  # other vehicles simulated
-    true_poses: PoseArray  # (N, 6) noise-free reference-point poses of the calibration vehicle, local frame
-    true_stamps: Stamps  # (N,) the same instants in the camera clock (ns)
+    true_poses: FloatArray  # (N, 6) noise-free reference-point poses of the calibration vehicle, local frame
+    true_stamps: IntArray  # (N,) the same instants in the camera clock (ns)
 
 
 def _camera_from_spec(spec: CameraSpec, ground: GroundSurface) -> SimulatedCamera:
     """Mast at (x, y) on the ground, optical centre `height_m` above it, aimed by yaw/pitch/roll."""
     z = float(ground.height(np.array([[spec.x_m, spec.y_m]]))[0]) + spec.height_m
     centre = np.array([spec.x_m, spec.y_m, z])
-    R = camera_rotation_from_view(
+    R = mount_rotation(
         math.radians(spec.yaw_deg), math.radians(spec.pitch_down_deg), math.radians(spec.roll_deg)
     )
     intrinsics = CameraIntrinsics(
@@ -121,12 +109,9 @@ def _frame_times(end_s: float, fps: float, jitter_s: float, rng: np.random.Gener
     return np.asarray(rng.uniform(0.0, period) + period * np.arange(count) + jitter, dtype=np.float64)
 
 
-def _reference_poses(centre: PoseArray, profile: VehicleProfile) -> PoseArray:
+def _reference_poses(centre: FloatArray, profile: VehicleProfile) -> FloatArray:
     """Footprint-centre poses (N, 6) -> poses (N, 6) of the reference point (`imu_offset`, the IMU)."""
-    reference = reference_from_center_footprint(
-        centre[:, :3], centre[:, 3], centre[:, 4], centre[:, 5], profile
-    )
-    return np.column_stack([reference, centre[:, 3:]])
+    return reference_from_footprint_centre(centre, profile)
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,7 +120,7 @@ class _CalibrationTrack:
     reference-point poses (M, 6) local, traversal labels (M,)."""
 
     frames: np.ndarray
-    poses: PoseArray
+    poses: FloatArray
     traversal: np.ndarray
 
 
@@ -144,7 +129,7 @@ def _instances(
     times: FloatArray,
     ground: GroundSurface,
     camera: SimulatedCamera,
-    model: CameraModel,
+    model: Lens,
     profile: VehicleProfile,
     windows: tuple[tuple[float, float], ...],
 ) -> tuple[Instances, _CalibrationTrack | None]:
@@ -155,7 +140,7 @@ def _instances(
     calib: _CalibrationTrack | None = None
     calib_visible = np.zeros(0, dtype=bool)
     R, t = camera.R_cam_from_local, camera.t_cam_from_local
-    view_bounds = field_of_view_bounds(model)
+    view_bounds = model.view_bounds()
     for index, vehicle in enumerate(vehicles):
         first, last = np.searchsorted(times, [vehicle.t_start, vehicle.t_end], side="left")
         if last <= first:
@@ -180,8 +165,12 @@ def _instances(
     owner_all = np.concatenate(owner).astype(np.int64) if owner else np.zeros(0, dtype=np.int64)
     if calib is not None:
         # The calibration vehicle's cuboid straight from its reference-point pose and profile.
-        corners[owner_all == 0] = body_corners(calib.poses[calib_visible], profile)
-    distance = np.hypot(*(center_poses[:, :2] - camera_center(R, t)[:2]).T)
+        corners[owner_all == 0] = place_points(
+            calib.poses[calib_visible],
+            cuboid_points(profile),
+            np.asarray(profile.imu_offset, dtype=np.float64),
+        )
+    distance = np.hypot(*(center_poses[:, :2] - camera_position(R, t)[:2]).T)
     frame_all = np.concatenate(frames).astype(np.int64) if frames else np.zeros(0, dtype=np.int64)
     cls_all = np.concatenate(cls).astype(np.int64) if cls else np.zeros(0, dtype=np.int64)
     return Instances(frame_all, corners, distance, cls_all, owner_all), calib
@@ -225,8 +214,8 @@ def _pose_instants(end_s: float, spec: PoseSpec, rng: np.random.Generator) -> Fl
 
 
 def _reported_poses(
-    true_local: PoseArray, speed: FloatArray, t: FloatArray, spec: PoseSpec, rng: np.random.Generator
-) -> tuple[PoseArray, FloatArray]:
+    true_local: FloatArray, speed: FloatArray, t: FloatArray, spec: PoseSpec, rng: np.random.Generator
+) -> tuple[FloatArray, FloatArray]:
     """What the GNSS/IMU reports: white noise on x, y (and z), slow drift, yaw noise; speed noise."""
     n = len(t)
     reported = true_local.copy()
@@ -246,17 +235,16 @@ def _reported_poses(
 def _v2x_messages(
     poses: list[VehiclePose],
     speed: FloatArray,
-    frame: UtmFrame,
+    frame: GeoFrame,
     station_id: int,
     profile: VehicleProfile,
     accuracy_m: float,
 ) -> list[V2xPosition]:
-    """frames.v2x_from_pose for every pose, with the projection done once for all of them."""
+    """The reported poses as V2X broadcasts: WGS84 position, true-north heading, the same stamps."""
     east = np.array([p.x for p in poses])
     north = np.array([p.y for p in poses])
     lat, lon = frame.to_wgs84(east, north)
-    heading = frame.heading_from_yaw(np.array([p.yaw for p in poses]), lat, lon)
-    heading = np.where(heading >= 360.0, 0.0, heading)  # float rounding of the modulo
+    heading = frame.true_heading_deg(east, north, np.array([p.yaw for p in poses]))
     accuracies = V2xAccuracies(horizontal_m=max(accuracy_m, 0.02), vertical_m=max(accuracy_m, 0.02))
     return [
         V2xPosition(
@@ -278,11 +266,13 @@ def _v2x_messages(
 
 
 def resolve_config(preset: str | ScenarioConfig) -> ScenarioConfig:
-    """A preset name or a config -> the config (InputError naming the choices for an unknown name)."""
+    """A preset name or a config -> the config (SimulationError naming the choices for an unknown name)."""
     if isinstance(preset, ScenarioConfig):
         return preset
     if preset not in PRESETS:
-        raise InputError("preset", f"unknown preset {preset!r}; choose one of {', '.join(sorted(PRESETS))}")
+        raise SimulationError(
+            "preset", f"unknown preset {preset!r}; choose one of {', '.join(sorted(PRESETS))}"
+        )
     return PRESETS[preset]
 
 
@@ -334,7 +324,7 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
         for stamp, p in zip(vehicle_stamps, reported, strict=True)
     ]
     v2x = _v2x_messages(
-        poses, reported_speed, UtmFrame(origin.crs), config.station_id, profile, config.pose.position_sigma_m
+        poses, reported_speed, GeoFrame(origin.crs), config.station_id, profile, config.pose.position_sigma_m
     )
 
     # --- cameras
@@ -347,7 +337,7 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
             traffic.end_s, config.detector.fps, config.detector.frame_jitter_s, rng["frames"]
         )
         stamps = start_ns + np.round(times * 1e9).astype(np.int64)
-        model = CameraModel.from_intrinsics(camera.intrinsics)
+        model = Lens.from_intrinsics(camera.intrinsics)
         instances, calib = _instances(
             vehicles, times, ground, camera, model, profile, traffic.traversal_windows
         )
@@ -408,7 +398,7 @@ def _ground_truth(
     origin: LocalOrigin,
     origin_vec: FloatArray,
     config: ScenarioConfig,
-    stamps: Stamps,
+    stamps: IntArray,
     rendered: RenderedFrames,
     calib: _CalibrationTrack | None,
     profile: VehicleProfile,
@@ -420,7 +410,9 @@ def _ground_truth(
     footprints = np.full((len(stamps), 4, 3), np.nan)
     if calib is not None:
         traversal[calib.frames] = calib.traversal
-        footprints[calib.frames] = footprint_corners(calib.poses, profile)
+        footprints[calib.frames] = place_points(
+            calib.poses, footprint_points(profile), np.asarray(profile.imu_offset, dtype=np.float64)
+        )
     frames = []
     for f, stamp in enumerate(stamps):
         row = int(calib_row[f])
@@ -451,33 +443,10 @@ def _ground_truth(
         R=(tuple(R[0]), tuple(R[1]), tuple(R[2])),
         t_utm=tuple(t_local - R @ origin_vec),
         t_local=tuple(t_local),
-        camera_position_utm=tuple(camera_center(R, t_local) + origin_vec),
+        camera_position_utm=tuple(camera_position(R, t_local) + origin_vec),
         intrinsics=camera.intrinsics,
         station_id=config.station_id,
         clock_offset_ns=config.pose.clock_offset_ns,
         traversals=len(detected),
         frames=frames,
-    )
-
-
-def calibration_inputs(result: SimulationResult, camera_id: str | None = None) -> CalibrationInputs:
-    """calibrate() inputs for one camera of a simulation (default: the first), with the simulated clock
-    offset passed as the known one, exactly as a recording of the same scene would be calibrated."""
-    from pipeline.calibrate import CalibrationInputs
-
-    camera = (
-        result.cameras[0]
-        if camera_id is None
-        else next(c for c in result.cameras if c.camera_id == camera_id)
-    )
-    return CalibrationInputs(
-        rsu_id=result.rsu_id,
-        camera_id=camera.camera_id,
-        intrinsics=camera.intrinsics,
-        vehicle=result.vehicle,
-        detections=result.detections[camera.camera_id],
-        poses=result.poses,
-        crs=result.origin.crs,
-        time_offset_ns=result.ground_truth[camera.camera_id].clock_offset_ns,
-        station_id=result.station_id,
     )

@@ -15,11 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.arrays import FloatArray, check_shape
-from pipeline.errors import InputError
-from pipeline.sim_presets import GroundSpec, OccluderSpec, RoadSpec
-from pipeline.vehicle import body_corners_body_frame
-from schemas.common import VehicleProfile
+from sim.errors import SimulationError
+from sim.geometry import FloatArray
+from sim.presets import GroundSpec, OccluderSpec, RoadSpec
 
 # Spacing of the dense path samples (m): arcs of 6 m radius deviate < 2 mm from their chords.
 PATH_STEP_M = 0.25
@@ -27,10 +25,10 @@ PATH_STEP_M = 0.25
 LATERAL_ACCEL_MPS2 = 2.5
 CURVE_DECEL_MPS2 = 2.0
 
-# The 8 corners of a unit box in body-corner order (footprint RR, FR, FL, RL, then the roof), shared by
-# vehicles and occluders so both are cuboids in the same convention as pipeline.vehicle.
-UNIT_BOX_CORNERS = body_corners_body_frame(
-    VehicleProfile(length=1.0, width=1.0, height=1.0, imu_offset=(0, 0, 0))
+# The 8 corners of a unit box: the base (rear-right, front-right, front-left, rear-left; x forward, y left)
+# then the top, for the world's cuboids (occluders, and the vehicles of the `ideal` world).
+UNIT_BOX_CORNERS = np.array(
+    [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype=np.float64
 )
 
 
@@ -74,7 +72,6 @@ class WorldGeometry:
 
     def ground_height(self, xy: FloatArray) -> FloatArray:
         """(N, 2) local x, y -> (N,) z of the road surface (m)."""
-        check_shape(xy, "N,2", name="xy")
         return self.ground.height(xy)
 
 
@@ -277,7 +274,7 @@ class RoadNetwork:
         try:
             entry, exit_ = name.split(">")
         except ValueError as err:
-            raise InputError("route", f"route = {name!r} is not of the form 'A>B'") from err
+            raise SimulationError("route", f"route = {name!r} is not of the form 'A>B'") from err
         outer = self.lanes_per_direction - 1
         for lane in range(self.lanes_per_direction):
             candidate = self.routes.get((entry, lane, exit_, lane))
@@ -286,7 +283,9 @@ class RoadNetwork:
             wanted = 0 if candidate.turn == "left" else outer
             if lane == wanted:
                 return candidate
-        raise InputError("route", f"route = {name!r}: no such route; arms are {', '.join(self.arm_names)}")
+        raise SimulationError(
+            "route", f"route = {name!r}: no such route; arms are {', '.join(self.arm_names)}"
+        )
 
 
 def _arm_centreline(

@@ -14,64 +14,33 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.arrays import Boxes, FloatArray, IntArray, Mask, PoseArray, Rotation, Vec3, check_shape
-from pipeline.camera import CameraModel, project_points_cam, rotation_from_ypr, undistort_pixels
-from pipeline.sim_presets import DetectorSpec
-from pipeline.sim_world import UNIT_BOX_CORNERS
+from sim.geometry import BoolArray, FloatArray, IntArray, attitude_matrices
+from sim.lens import Lens
+from sim.presets import DetectorSpec
+from sim.world import UNIT_BOX_CORNERS
 
-# A corner closer than this to the camera plane (m) counts as behind it: no detector box exists then.
-NEAR_PLANE_M = 0.5
+Boxes = FloatArray  # (N, 4) x1, y1, x2, y2 pixels
+Mask = BoolArray
 CLASS_CHOICES = np.array([4, 5, 6, 7])
 
 
-def cuboid_corners(center_poses: PoseArray, dims: FloatArray) -> FloatArray:
+def cuboid_corners(center_poses: FloatArray, dims: FloatArray) -> FloatArray:
     """Body corners (P, 8, 3), footprint RR, FR, FL, RL then the roof (vehicle.body_corners order), of
     boxes whose footprint centre and attitude are `center_poses` (P, 6) and size `dims` (P, 3) = L, W, H."""
-    check_shape(center_poses, "P,6", name="center_poses")
-    check_shape(dims, "P,3", name="dims")
-    R = rotation_from_ypr(center_poses[:, 3], center_poses[:, 4], center_poses[:, 5])
+    R = attitude_matrices(center_poses[:, 3], center_poses[:, 4], center_poses[:, 5])
     body = (UNIT_BOX_CORNERS[None, :, :] - np.array([0.5, 0.5, 0.0])) * dims[:, None, :]
     return np.asarray(np.einsum("pij,pkj->pki", R, body) + center_poses[:, None, :3], dtype=np.float64)
-
-
-def valid_normalized_radius(camera: CameraModel, margin: float = 1.15) -> float:
-    """Largest undistorted normalised radius the lens model is trusted at: a bit beyond the image corners.
-
-    Far outside the image the polynomial distortion folds back and would put points into the picture."""
-    if not camera.has_distortion:
-        return float("inf")
-    w, h = camera.width, camera.height
-    border = np.array([[0, 0], [w, 0], [0, h], [w, h], [w / 2, 0], [w / 2, h], [0, h / 2], [w, h / 2]], float)
-    return margin * float(np.max(np.hypot(*undistort_pixels(border, camera).T)))
-
-
-def field_of_view_bounds(camera: CameraModel) -> FloatArray:
-    """Normalised image-plane bounds [x_min, y_min, x_max, y_max] (x/z, y/z, undistorted) of the image."""
-    w, h = camera.width, camera.height
-    u = np.linspace(0.0, w, 9)
-    v = np.linspace(0.0, h, 9)
-    border = np.concatenate(
-        [
-            np.column_stack([u, np.zeros(9)]),
-            np.column_stack([u, np.full(9, h)]),
-            np.column_stack([np.zeros(9), v]),
-            np.column_stack([np.full(9, w), v]),
-        ]
-    )
-    xy = undistort_pixels(border, camera)
-    return np.array([xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max()])
 
 
 def may_be_in_view(
     centres: FloatArray,
     radius: FloatArray,
-    R_cam_from_local: Rotation,
-    t_cam_from_local: Vec3,
+    R_cam_from_local: FloatArray,
+    t_cam_from_local: FloatArray,
     view_bounds: FloatArray,
 ) -> Mask:
     """Conservative cull (P,): False only where a sphere (centre (P, 3) local, radius (P,) m) lies wholly
-    outside the view (`view_bounds` from field_of_view_bounds): the exact box test runs on fewer cuboids."""
-    check_shape(centres, "P,3", name="centres")
+    outside the view (`view_bounds` from Lens.view_bounds): the exact box test runs on fewer cuboids."""
     cam = centres @ R_cam_from_local.T + t_cam_from_local
     z = cam[:, 2]
     near = z <= radius  # touching the camera plane: let the exact test decide
@@ -100,19 +69,14 @@ class ProjectedBoxes:
 
 
 def project_boxes(
-    corners: FloatArray, R_cam_from_local: Rotation, t_cam_from_local: Vec3, camera: CameraModel
+    corners: FloatArray, R_cam_from_local: FloatArray, t_cam_from_local: FloatArray, lens: Lens
 ) -> ProjectedBoxes:
-    """Detector-style boxes (pixels) of cuboids with corners (P, 8, 3) in the local frame."""
-    check_shape(corners, "P,8,3", name="corners")
-    count = len(corners)
+    """Boxes (pixels) of point sets (P, K, 3) in the local frame: the tight bounds of all K projections."""
+    count, per = corners.shape[:2]
     points_cam = corners.reshape(-1, 3) @ R_cam_from_local.T + t_cam_from_local
-    depth = points_cam[:, 2]
-    in_front = depth > NEAR_PLANE_M
-    safe = np.where(in_front[:, None], points_cam, np.array([0.0, 0.0, 1.0]))
-    if camera.has_distortion:
-        in_front &= np.hypot(safe[:, 0], safe[:, 1]) / safe[:, 2] <= valid_normalized_radius(camera)
-    pixels = project_points_cam(safe, camera).reshape(count, 8, 2)
-    projectable = np.all(in_front.reshape(count, 8), axis=1)
+    pixels, imageable = lens.project_cam(points_cam)
+    pixels = pixels.reshape(count, per, 2)
+    projectable = np.all(imageable.reshape(count, per), axis=1)
     raw = np.full((count, 4), np.nan)
     if np.any(projectable):
         px = pixels[projectable]
@@ -126,10 +90,10 @@ def project_boxes(
         )
     clipped = np.column_stack(
         [
-            np.clip(raw[:, 0], 0, camera.width),
-            np.clip(raw[:, 1], 0, camera.height),
-            np.clip(raw[:, 2], 0, camera.width),
-            np.clip(raw[:, 3], 0, camera.height),
+            np.clip(raw[:, 0], 0, lens.width),
+            np.clip(raw[:, 1], 0, lens.height),
+            np.clip(raw[:, 2], 0, lens.width),
+            np.clip(raw[:, 3], 0, lens.height),
         ]
     )
     area = (raw[:, 2] - raw[:, 0]) * (raw[:, 3] - raw[:, 1])
@@ -177,7 +141,6 @@ def hidden_fractions(
     rows to measure (occluders are never measured, but hide others). The box is sampled on a grid x grid
     of cell centres. Returns the hidden fraction (P,) (0 for non-targets) and the bounds (P, 4) of the
     uncovered samples' cells: the visible part's box (the box itself where nothing covers it)."""
-    check_shape(boxes, "P,4", name="boxes")
     hidden = np.zeros(len(boxes))
     visible = boxes.copy()
     pair_i, pair_j = [], []
@@ -251,7 +214,7 @@ class RenderedFrames:
 
 
 def _false_positives(
-    frames: int, spec: DetectorSpec, camera: CameraModel, rng: np.random.Generator
+    frames: int, spec: DetectorSpec, camera: Lens, rng: np.random.Generator
 ) -> tuple[IntArray, Boxes]:
     """Short-lived spurious boxes: tracklets of 1-5 frames drifting a few pixels per frame."""
     mean_length = 2.5
@@ -273,7 +236,7 @@ def _false_positives(
     return frame.astype(np.int64), boxes
 
 
-def _finish_boxes(boxes: Boxes, camera: CameraModel) -> Boxes:
+def _finish_boxes(boxes: Boxes, camera: Lens) -> Boxes:
     """Ordered, clipped to the image, at least 1 px wide and tall (as a detector's output after NMS)."""
     x1 = np.clip(np.minimum(boxes[:, 0], boxes[:, 2]), 0.0, camera.width - 1.0)
     y1 = np.clip(np.minimum(boxes[:, 1], boxes[:, 3]), 0.0, camera.height - 1.0)
@@ -282,9 +245,7 @@ def _finish_boxes(boxes: Boxes, camera: CameraModel) -> Boxes:
     return np.column_stack([x1, y1, x2, y2])
 
 
-def _edge_noise(
-    boxes: Boxes, spec: DetectorSpec, camera: CameraModel, rng: np.random.Generator
-) -> FloatArray:
+def _edge_noise(boxes: Boxes, spec: DetectorSpec, camera: Lens, rng: np.random.Generator) -> FloatArray:
     """Detector edge noise (N, 4): std grows with the box's size (floored at half the reference std), and
     an edge cut by the image border stays on the border, as a detector reports a cut-off vehicle."""
     size = np.column_stack([boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]])[:, [0, 1, 0, 1]]
@@ -301,9 +262,9 @@ def render_frames(
     instances: Instances,
     frames: int,
     occluder_corners: FloatArray,
-    R_cam_from_local: Rotation,
-    t_cam_from_local: Vec3,
-    camera: CameraModel,
+    R_cam_from_local: FloatArray,
+    t_cam_from_local: FloatArray,
+    camera: Lens,
     spec: DetectorSpec,
     rng: np.random.Generator,
 ) -> RenderedFrames:

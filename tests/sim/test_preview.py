@@ -8,12 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.preview import HIGHLIGHT_BGR, busiest_calib_frame, render_preview, write_preview
-from pipeline.simulate import SimulationResult, simulate
 from schemas.common import Box
 from schemas.files import GroundTruthFrame
 from schemas.messages import DetectionFrame
+from sim.errors import SimulationError
+from sim.preview import HIGHLIGHT_BGR, busiest_calib_frame, render_preview, write_preview
+from sim.simulate import SimulationResult, simulate
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ def test_preview_is_deterministic_and_rejects_an_unknown_camera(carla: Simulatio
     assert np.array_equal(image, render_preview(carla))
     # Not a blank canvas: sky, grass and asphalt at least.
     assert len(np.unique(image[::8, ::8].reshape(-1, 3), axis=0)) > 50
-    with pytest.raises(InputError, match="camera_id"):
+    with pytest.raises(SimulationError, match="camera_id"):
         render_preview(carla, "no-such-camera")
 
 
