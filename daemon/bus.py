@@ -260,6 +260,7 @@ class Bus:
         self._state: Literal["new", "open", "closed"] = "new"
         self._session: zenoh.Session | None = None
         self._subscribers: list[zenoh.Subscriber[Any]] = []
+        self._detection_publishers: dict[str, zenoh.Publisher] = {}
         self._queryables: list[zenoh.Queryable[Any]] = []
         self._threads: list[threading.Thread] = []
         self._token: zenoh.LivelinessToken | None = None
@@ -316,6 +317,29 @@ class Bus:
             ", ".join(effective_endpoints(config)) or "(none)",
         )
 
+    def publish_detections(self, camera_id: str, payload: bytes) -> None:
+        """Put a DetectionFrame the daemon's own detector made on `.../detections`, for other sessions only
+        (Locality.REMOTE: our own subscriber must not ingest it a second time). Called from the camera's
+        detector thread; a slow remote loses frames (congestion DROP) rather than holding the detector."""
+        session = self._session
+        if session is None or self._state != "open":
+            raise BusError(f"bus of rsu {self._rsu_id} is not open")
+        key = detections_key(self._rsu_id, camera_id)
+        try:
+            with self._lock:
+                publisher = self._detection_publishers.get(camera_id)
+                if publisher is None:
+                    publisher = session.declare_publisher(
+                        key,
+                        encoding=JSON,
+                        congestion_control=zenoh.CongestionControl.DROP,
+                        allowed_destination=zenoh.Locality.REMOTE,
+                    )
+                    self._detection_publishers[camera_id] = publisher
+            publisher.put(payload)
+        except zenoh.ZError as err:
+            raise BusError(f"put {key}: {zenoh_message(err)}") from err
+
     def publish_calibration(self, camera_id: str, payload: bytes) -> None:
         """Put a validated CalibrationResult (JSON) on `rsu/{rsu}/camera/{camera_id}/calibration`."""
         if camera_id not in self._camera_ids:
@@ -336,10 +360,16 @@ class Bus:
                 return
             self._state = "closed"
         token, self._token = self._token, None
-        entities: list[zenoh.LivelinessToken | zenoh.Subscriber[Any] | zenoh.Queryable[Any]] = [
+        with self._lock:
+            publishers = list(self._detection_publishers.values())
+            self._detection_publishers = {}
+        entities: list[
+            zenoh.LivelinessToken | zenoh.Subscriber[Any] | zenoh.Queryable[Any] | zenoh.Publisher
+        ] = [
             *([token] if token is not None else []),
             *self._subscribers,
             *self._queryables,
+            *publishers,
         ]
         self._subscribers, self._queryables = [], []
         for entity in entities:

@@ -31,7 +31,7 @@ import numpy as np
 import zenoh
 
 from daemon import __version__
-from daemon.bus import Bus, Handlers, session_config
+from daemon.bus import Bus, BusError, Handlers, session_config
 from daemon.clock import Clock, SystemClock
 from daemon.detector import DetectorWorker, ImageRouter, build_workers
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
@@ -166,7 +166,7 @@ class Daemon:
     def start(self) -> None:
         """Recover state, start job workers and threads, then go on the bus (BusError on a bad endpoint)."""
         # Detector models load first: a bad one is a configuration error, before anything starts.
-        self._detectors = build_workers(self.config, self._on_inbound, self.counters, self.clock)
+        self._detectors = build_workers(self.config, self._on_detected, self.counters, self.clock)
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self.recordings_dir.mkdir(parents=True, exist_ok=True)
         self._recover()
@@ -350,6 +350,19 @@ class Daemon:
             self._inbox_items += 1
             self._inbox_bytes += size
         self._inbox.put(Inbound(key, payload, received_ns))
+
+    def _on_detected(self, key: str, payload: bytes, received_ns: int) -> None:
+        """A detector thread's DetectionFrame: into the inbox like a bus message, and on the bus for other
+        sessions (a live viewer, another consumer); a failed put is counted, the frame is kept anyway."""
+        self._on_inbound(key, payload, received_ns)
+        bus = self._bus
+        if bus is None:
+            return
+        try:
+            bus.publish_detections(key.split("/")[3], payload)
+        except BusError as err:
+            self.counters.add("images.publish_failed")
+            log.debug("publishing a detected frame: %s", err)
 
     # ------------------------------------------------------------------------------------------ ingest thread
 

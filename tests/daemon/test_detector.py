@@ -246,6 +246,10 @@ def test_daemon_detects_images_from_the_bus_and_records_the_frames(tmp_path: Pat
     try:
         daemon.start()
         client = zenoh.open(client_config([f"tcp/127.0.0.1:{port}"]))
+        remote: list[bytes] = []  # what another session sees of the daemon's detections
+        watcher = client.declare_subscriber(
+            "rsu/r1/camera/cam/detections", lambda sample: remote.append(sample.payload.to_bytes())
+        )
         publisher = client.declare_publisher(
             image_key("r1", "cam"), congestion_control=zenoh.CongestionControl.BLOCK
         )
@@ -258,9 +262,14 @@ def test_daemon_detects_images_from_the_bus_and_records_the_frames(tmp_path: Pat
         client.put(image_key("r1", "plain"), encode_compressed_image(_image([]), T0, "plain"))  # no detector
         wait_until(lambda: (h := health()) is not None and h.counters.get("images.rejected.no_detector") == 1)
         wait_until(lambda: (h := health()) is not None and h.counters.get("images.rejected.decode") == 1)
+        wait_until(lambda: len(remote) == 5)
         counters = health().counters  # type: ignore[union-attr]
         assert counters["images.cam.received"] == 6 and counters["images.cam.detected"] == 5
+        # Published for others, ingested once: the daemon's own subscriber did not take them in again.
+        assert counters["detections.accepted"] == 5 and counters["detections.received"] == 5
+        assert [json.loads(p)["stamp_ns"] for p in remote] == stamps
         publisher.undeclare()
+        watcher.undeclare()
     finally:
         if client is not None:
             client.close()  # type: ignore[no-untyped-call]
