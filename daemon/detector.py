@@ -345,6 +345,7 @@ class DetectorWorker:
         self._counters.add(self._received)
         with self._cond:
             if self._stopping:
+                self._counters.add(self._dropped)  # received = detected + dropped + rejected, always
                 return
             if len(self._queue) >= self._capacity:
                 self._queue.popleft()
