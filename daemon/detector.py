@@ -326,6 +326,7 @@ class DetectorWorker:
         self._rejects = RejectLog(counters, warn_interval_s, clock)  # this thread's own: not shared
         self._queue: deque[tuple[bytes, int]] = deque()
         self._capacity = detector.config.queue_images
+        self.max_image_bytes = detector.config.max_image_bytes
         self._cond = threading.Condition()
         self._stopping = False
         self._thread = threading.Thread(target=self._run, name=f"rsucal-detector-{camera_id}", daemon=True)
@@ -417,7 +418,8 @@ class DetectorWorker:
 
 class ImageRouter:
     """Hands each `rsu/{rsu}/camera/{cam}/image` sample to its camera's DetectorWorker (Zenoh's thread);
-    images of cameras without a detector are counted (images.rejected.no_detector) and warned about."""
+    images of cameras without a detector (images.rejected.no_detector) and payloads beyond the camera's
+    max_image_bytes (images.rejected.oversized) are counted and warned about."""
 
     def __init__(
         self, rsu_id: str, workers: Mapping[str, DetectorWorker], counters: Counters, rejects: RejectLog
@@ -436,7 +438,18 @@ class ImageRouter:
         camera_id = key[len(self._prefix) : -len("/image")] if key.startswith(self._prefix) else ""
         worker = self._workers.get(camera_id)
         if worker is not None:
-            worker.offer(payload, received_ns)
+            limit = worker.max_image_bytes
+            if len(payload) <= limit:
+                worker.offer(payload, received_ns)
+                return
+            with self._lock:
+                self._rejects.reject(
+                    "images",
+                    "oversized",
+                    f"{key}: payload: {len(payload)} bytes exceeds "
+                    f"cameras.{camera_id}.detector.max_image_bytes = {limit}",
+                    "payload",
+                )
             return
         with self._lock:
             self._rejects.reject(

@@ -88,6 +88,9 @@ class DetectorConfig(StrictModel):
     queue_images: int = Field(
         default=2, ge=1, le=100, description="images waiting; a newer one drops the oldest (counted)"
     )
+    max_image_bytes: int = Field(
+        default=32 * MIB, ge=64 * 1024, le=1024 * MIB, description="larger image payloads are rejected"
+    )
 
 
 class CameraConfig(StrictModel):

@@ -217,7 +217,7 @@ def _daemon_config(tmp_path: Path, port: int, model: Path) -> DaemonConfig:
                 camera_id="cam",
                 intrinsics=intrinsics,
                 labels=COCO_LIKE,
-                detector=_detector_config(model, "yolov8", classes=["car", "bus"]),
+                detector=_detector_config(model, "yolov8", classes=["car", "bus"], max_image_bytes=64 * 1024),
             ),
             CameraConfig(camera_id="plain", intrinsics=intrinsics),
         ],
@@ -259,9 +259,11 @@ def test_daemon_detects_images_from_the_bus_and_records_the_frames(tmp_path: Pat
             # One at a time: the test is about what arrives, not about dropping (tested above).
             wait_until(lambda s=stamp_ns: daemon.counters.get("detections.accepted") == stamps.index(s) + 1)
         client.put(image_key("r1", "cam"), b'{"timestamp": 5}')  # bad: counted, named
+        client.put(image_key("r1", "cam"), b"\0" * (64 * 1024 + 1))  # beyond max_image_bytes
         client.put(image_key("r1", "plain"), encode_compressed_image(_image([]), T0, "plain"))  # no detector
         wait_until(lambda: (h := health()) is not None and h.counters.get("images.rejected.no_detector") == 1)
         wait_until(lambda: (h := health()) is not None and h.counters.get("images.rejected.decode") == 1)
+        wait_until(lambda: (h := health()) is not None and h.counters.get("images.rejected.oversized") == 1)
         wait_until(lambda: len(remote) == 5)
         counters = health().counters  # type: ignore[union-attr]
         assert counters["images.cam.received"] == 6 and counters["images.cam.detected"] == 5
