@@ -1,7 +1,10 @@
 """Accuracy benchmark: every simulator preset (but `long`) over seeds, calibrate() on every camera, scored
 against the ground truth, beside the paper's figures and our targets. Not part of the test suite.
 
-    python -m bench.accuracy [--seeds 10] [--presets a,b,...] [--jobs 2] [--json out.json]
+    python -m bench.accuracy [--seeds 10] [--presets a,b,...] [--ideal] [--jobs 2] [--json out.json]
+
+The world is the simulator's real one (shaped bodies, a biased detector, unknown latency, CAM V2X) unless
+`--ideal` asks for the first simulator's world (cuboid boxes, no latency, IMU poses as V2X).
 
 Per (preset, seed): simulate(preset, seed), then calibrate() for every camera with the true clock offset as
 the known `time_offset_ns`, and evaluate_against_ground_truth() of the result (accepted results count) and of
@@ -15,6 +18,9 @@ Columns (aggregated per preset over all cameras and seeds):
   ref        refused runs;  FA  false accepts: accepted with position error > 0.5 m or rotation > 0.5 deg
   err        runs that raised;  t  median calibrate() seconds per camera
   floor      the true calibration on the same boxes: delta_p mean (m) / e_m (%), mean over all runs
+  lat ms     the cameras' true latency (detection stamp minus exposure), mean over runs (unknown to rsucal)
+  area       the calibration vehicle's detected box area / its data-sheet cuboid's rectangle, mean over
+             frames where the cuboid lies wholly inside the image and the box is no merge or split
 Exit code 0 when every target passes, 1 otherwise. Per-run failures are printed under the table.
 """
 
@@ -342,7 +348,23 @@ def _condense(notes: Sequence[str]) -> list[str]:
     return out + [f"{n} x {text}" for text, n in counts.most_common()]
 
 
-def run_seed(task: tuple[str, int]) -> list[Run]:
+def box_area_ratio(truth: Any) -> float | None:
+    """Mean detected-box area over data-sheet-cuboid-rectangle area of the calibration vehicle (frames with
+    the cuboid wholly inside the image and no gross error); None without such frames."""
+    width, height = truth.intrinsics.width, truth.intrinsics.height
+    ratios = []
+    for f in truth.frames:
+        if f.box is None or f.cuboid_box is None or f.gross_error is not None:
+            continue
+        x1, y1, x2, y2 = f.cuboid_box
+        if x1 < 0 or y1 < 0 or x2 > width or y2 > height:
+            continue
+        b = f.box
+        ratios.append((b[2] - b[0]) * (b[3] - b[1]) / max((x2 - x1) * (y2 - y1), 1e-9))
+    return statistics.fmean(ratios) if ratios else None
+
+
+def run_seed(task: tuple[str, int, bool]) -> list[Run]:
     """simulate(preset, seed), calibrate() every camera, evaluate: one record per camera."""
     import numpy as np
 
@@ -350,11 +372,11 @@ def run_seed(task: tuple[str, int]) -> list[Run]:
     from pipeline.metrics import evaluate_against_ground_truth, result_from_ground_truth
     from sim.simulate import simulate
 
-    preset, seed = task
-    base: Run = {"preset": preset, "seed": seed}
+    preset, seed, ideal = task
+    base: Run = {"preset": preset, "seed": seed, "ideal": ideal}
     try:
         started = time.perf_counter()
-        sim = simulate(preset, seed)
+        sim = simulate(preset, seed, ideal=ideal)
         simulate_s = time.perf_counter() - started
     except Exception as err:
         return [{**base, "camera": "*", "verdict": "error", "error": _describe(err), "reasons": []}]
@@ -369,6 +391,9 @@ def run_seed(task: tuple[str, int]) -> list[Run]:
             "simulate_s": simulate_s,
             "truth_traversals": truth.traversals,
             "truth_boxes": sum(f.calib_box is not None for f in truth.frames),
+            "latency_ms": truth.latency_ns / 1e6,
+            "vehicle_type": truth.vehicle_type,
+            "box_area_ratio": box_area_ratio(truth),
         }
         try:
             floor = evaluate_against_ground_truth(result_from_ground_truth(truth, sim.rsu_id), truth)
@@ -464,6 +489,8 @@ def summarise(preset: str, runs: Sequence[Run]) -> dict[str, Any]:
         "median_seconds": statistics.median([r["seconds"] for r in runs if "seconds" in r] or [math.nan]),
         "floor_delta_p_mean_m": _mean([r.get("floor_delta_p_mean_m") for r in runs]),
         "floor_e_mean_pct": _mean([r.get("floor_e_mean_pct") for r in runs]),
+        "latency_ms": _mean([r.get("latency_ms") for r in runs]),
+        "box_area_ratio": _mean([r.get("box_area_ratio") for r in runs]),
         "paper": PAPER.get(preset, ""),
         "target": target.text if target else "(none)",
         "failures": failures,
@@ -497,6 +524,8 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
         "err",
         "t s",
         "floor dp/e_m",
+        "lat ms",
+        "area",
         "paper",
         "target",
         "result",
@@ -516,14 +545,16 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
                 str(s["errors"]),
                 _fmt(s["median_seconds"], ".1f"),
                 _pair(s["floor_delta_p_mean_m"], s["floor_e_mean_pct"], ".3f"),
+                _fmt(s.get("latency_ms"), ".0f"),
+                _fmt(s.get("box_area_ratio"), ".3f"),
                 s["paper"],
                 s["target"],
                 s["result"],
             )
         )
     rows.append(
-        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "false accepts = 0",
-         "PASS" if false_accepts == 0 and errors == 0 else "FAIL")
+        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "", "",
+         "false accepts = 0", "PASS" if false_accepts == 0 and errors == 0 else "FAIL")
     )  # fmt: skip
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows]
@@ -590,8 +621,8 @@ def _task_weight(preset: str) -> float:
     return len(config.cameras) * (config.traffic.count + 50) * (config.duration_s or 300.0)
 
 
-def _run_all(names: Sequence[str], seeds: int, jobs: int) -> list[Run]:
-    tasks = sorted(((p, s) for p in names for s in range(seeds)), key=lambda t: -_task_weight(t[0]))
+def _run_all(names: Sequence[str], seeds: int, jobs: int, ideal: bool) -> list[Run]:
+    tasks = sorted(((p, s, ideal) for p in names for s in range(seeds)), key=lambda t: -_task_weight(t[0]))
     runs: list[Run] = []
     started = time.perf_counter()
 
@@ -625,6 +656,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.accuracy", description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1 (default 10)")
     parser.add_argument("--presets", default="", help="comma-separated presets (default: all but long)")
+    parser.add_argument("--ideal", action="store_true", help="the first simulator's world (see above)")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--json", type=Path, help="also write every run and the summary here")
     parser.add_argument("--load", type=Path, help="report the runs of an earlier --json file, run nothing")
@@ -647,13 +679,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         unknown = [p for p in names if p not in PRESETS]
         if unknown:
             parser.error(f"unknown preset(s) {', '.join(unknown)}; choose from {', '.join(PRESETS)}")
-        code = tree_state(
-            ["pipeline", "schemas"]
-        )  # now: the workers import the code as it is when they start
-        runs = _run_all(names, args.seeds, args.jobs)
+        # Now: the workers import the code as it is when they start.
+        code = tree_state(["pipeline", "schemas", "sim"])
+        runs = _run_all(names, args.seeds, args.jobs, args.ideal)
+        world = "IDEAL world (cuboid boxes, no latency, IMU poses)" if args.ideal else "real world"
         header = (
-            f"rsucal accuracy benchmark: {len(names)} presets x seeds 0..{args.seeds - 1}, every camera, "
-            f"known clock offset; {len(runs)} runs in {(time.perf_counter() - started) / 60:.1f} min "
+            f"rsucal accuracy benchmark, {world}: {len(names)} presets x seeds 0..{args.seeds - 1}, every "
+            f"camera, known vehicle clock offset; {len(runs)} runs in "
+            f"{(time.perf_counter() - started) / 60:.1f} min "
             f"with {args.jobs} worker(s); code: {code}"
         )
 

@@ -40,15 +40,15 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         raise InputError(
             "--preset", f"unknown preset {args.preset!r}; choose one of {', '.join(sorted(PRESETS))}"
         )
-    result = simulate(args.preset, seed=args.seed)
+    result = simulate(args.preset, seed=args.seed, ideal=args.ideal)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     mcap_path = write_simulation_mcap(result, out / "recording.mcap")
     written = [mcap_path, *write_simulation_files(result, out)]
     if args.preview:
-        from sim.preview import write_preview
+        from sim.preview import write_previews
 
-        written.append(write_preview(result, Path(args.preview)))
+        written.extend(write_previews(result, Path(args.preview)))
     frames = sum(len(f) for f in result.detections.values())
     boxes = sum(len(fr.boxes) for f in result.detections.values() for fr in f)
     print(
@@ -157,7 +157,9 @@ def _cmd_status(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from daemon.demo import run_demo
 
-    return run_demo(preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout)
+    return run_demo(
+        preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout, ideal=args.ideal
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -172,10 +174,24 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser(
         "simulate", help="generate a seeded RSU scenario: MCAP, toolbox YAML pair, ground truth"
     )
-    sim.add_argument("--preset", default="sil-west", help="scenario preset (default sil-west)")
+    from sim.presets import PRESETS  # plain data: cheap to import for the help text
+
+    sim.add_argument(
+        "--preset",
+        default="sil-west",
+        help=f"scenario preset (default sil-west): {', '.join(sorted(PRESETS))}",
+    )
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sim.add_argument("--out", required=True, help="output directory")
-    sim.add_argument("--preview", help="write a PNG of one busy frame here")
+    sim.add_argument(
+        "--preview",
+        help="write a PNG of one busy frame per camera here (PATH_<camera>.png when there are several)",
+    )
+    sim.add_argument(
+        "--ideal",
+        action="store_true",
+        help="the first simulator's world: cuboid boxes, no latency, i.i.d. jitter, IMU poses as V2X",
+    )
     sim.set_defaults(func=_cmd_simulate)
 
     ev = sub.add_parser(
@@ -256,7 +272,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--preset", default="sil-west", help="simulator preset (default sil-west, 2 cameras)")
     demo.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     demo.add_argument("--rate", type=float, default=20.0, help="time acceleration (default 20x)")
-    demo.add_argument("--timeout", type=float, default=120.0, help="give up after this many seconds")
+    demo.add_argument("--timeout", type=float, default=300.0, help="give up after this many seconds")
+    demo.add_argument(
+        "--ideal",
+        action="store_true",
+        help="the first simulator's world (cuboid boxes, no latency, IMU poses): every camera must calibrate",
+    )
     demo.set_defaults(func=_cmd_demo)
 
     add_bridge_parser(sub)

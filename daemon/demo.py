@@ -4,6 +4,11 @@ A daemon (peer mode on a free loopback port, temporary state dir) is started on 
 RSU publishes two cameras' detections and a simulated calibration vehicle its V2X positions, each message
 when the scaled clock reaches its stamp. Progress is printed live from the daemon's events. At the end the
 calibrations are read back over Zenoh like any client would, and compared with the ground truth.
+
+The scene runs in the simulator's real world (vehicle shapes, a biased detector, an unknown camera latency,
+CAM V2X) unless `ideal` asks for the first simulator's world. The demo holds the product to its promise:
+every published calibration right (camera within MAX_POSITION_ERROR_M and MAX_ROTATION_ERROR_DEG of the
+truth), every other camera refused with reasons; in the ideal world every camera must be calibrated.
 """
 
 from __future__ import annotations
@@ -39,11 +44,11 @@ from schemas.config import (
 from schemas.results import CalibrationResult, CalibrationStatus
 from sim.simulate import SimulationResult, simulate
 
-# Accuracy the demo requires, the pipeline benchmark's targets for the sil presets (bench/accuracy.py):
-# delta_p mean <= 0.25 m and e mean <= 0.8 %; and a camera position within 0.5 m of the truth.
-MAX_DELTA_P_MEAN_M = 0.25
-MAX_E_MEAN_PCT = 0.8
+# A published calibration is right when the camera is within these of the truth: the benchmark's
+# false-accept limits (bench/accuracy.py). delta_p is shown but not judged: on a real road, with real vehicle
+# shapes and latency, even the true pose's delta_p exceeds the paper's figures.
 MAX_POSITION_ERROR_M = 0.5
+MAX_ROTATION_ERROR_DEG = 0.5
 # The configured camera position is deliberately approximate, as an installer would know it.
 POSITION_ERROR_M = 5.0
 COVERAGE_RADIUS_M = 150.0
@@ -126,15 +131,17 @@ def run_demo(
     preset: str = "sil-west",
     seed: int = 0,
     rate: float = 20.0,
-    timeout_s: float = 120.0,
+    timeout_s: float = 300.0,
     state_dir: Path | None = None,
     port: int | None = None,
     out: Printer = print,
+    ideal: bool = False,
 ) -> int:
-    """Run the demo; 0 when every camera was calibrated within the benchmark's accuracy, 1 otherwise."""
+    """Run the demo; 0 when the product kept its promise (module docstring), 1 otherwise."""
     started = time.monotonic()
-    out(f"rsucal demo: simulating preset {preset} (seed {seed}) ...")
-    sim = simulate(preset, seed)
+    world = "the ideal world" if ideal else "the real world"
+    out(f"rsucal demo: simulating preset {preset} (seed {seed}) in {world} ...")
+    sim = simulate(preset, seed, ideal=ideal)
     messages = simulation_messages(sim)
     duration_s = (messages[-1].stamp_ns - messages[0].stamp_ns) / 1e9
     out(
@@ -240,18 +247,20 @@ def _report(
     out(header)
     out("-" * len(header))
     passed = True
+    calibrated = 0
     for camera in config.cameras:
         camera_id = camera.camera_id
         result = results.get(camera_id)
         status = statuses.get(camera_id)
         if result is None:
-            reasons = (
-                "; ".join(status.last_job.verdict.reasons)
-                if status and status.last_job and status.last_job.verdict
-                else "no job finished"
-            )
-            out(f"{camera_id:<16}{'none':<10}{'':>15}{'':>10}{'':>11}{'':>13}{'':>15}  FAIL ({reasons})")
-            passed = False
+            verdict = status.last_job.verdict if status and status.last_job else None
+            refused = verdict is not None and not verdict.is_accepted and bool(verdict.reasons)
+            reasons = "; ".join(verdict.reasons) if verdict else "no job finished"
+            # A refusal with reasons keeps the promise in the real world; the ideal world must calibrate.
+            ok = refused and not sim.is_ideal
+            passed &= ok
+            label = "REFUSED" if refused else "FAIL"
+            out(f"{camera_id:<16}{'none':<10}{'':>15}{'':>10}{'':>11}{'':>13}{'':>15}  {label} ({reasons})")
             continue
         evaluation = evaluate_against_ground_truth(result, sim.ground_truth[camera_id])
         delta_p_m = _or_inf(evaluation.delta_p_mean_m)
@@ -260,11 +269,11 @@ def _report(
         rotation_deg = _or_inf(evaluation.rotation_error_deg)
         ok = (
             result.verdict.is_accepted
-            and delta_p_m <= MAX_DELTA_P_MEAN_M
-            and e_pct <= MAX_E_MEAN_PCT
             and position_m <= MAX_POSITION_ERROR_M
+            and rotation_deg <= MAX_ROTATION_ERROR_DEG
         )
         passed &= ok
+        calibrated += int(ok)
         std = (
             f"{result.uncertainty.position_std_m:.2f} / {result.uncertainty.rotation_std_deg:.2f}"
             if result.uncertainty
@@ -272,12 +281,18 @@ def _report(
         )
         out(
             f"{camera_id:<16}{result.verdict.status:<10}{delta_p_m:>15.3f}{e_pct:>10.2f}{position_m:>11.3f}"
-            f"{rotation_deg:>13.3f}{std:>15}  {'PASS' if ok else 'FAIL'}"
+            f"{rotation_deg:>13.3f}{std:>15}  {'PASS' if ok else 'FAIL (wrong calibration published)'}"
         )
     out("")
     out(
-        f"required: accepted, delta_p mean <= {MAX_DELTA_P_MEAN_M} m, e mean <= {MAX_E_MEAN_PCT} %, "
-        f"camera position within {MAX_POSITION_ERROR_M} m"
+        f"required: every published calibration within {MAX_POSITION_ERROR_M} m and "
+        f"{MAX_ROTATION_ERROR_DEG} deg of the truth; "
+        + (
+            "every camera calibrated (ideal world)"
+            if sim.is_ideal
+            else "any other camera refused with reasons"
+        )
     )
+    out(f"{calibrated}/{len(config.cameras)} camera(s) calibrated")
     out(f"demo {'PASSED' if passed else 'FAILED'} in {elapsed_s:.1f} s")
     return 0 if passed else 1

@@ -369,8 +369,14 @@ def format_summary(result: CalibrationResult, written: Path | None = None) -> st
 
 
 def inputs_from_simulation(result: SimulationResult, camera_id: str | None = None) -> CalibrationInputs:
-    """calibrate() inputs for one camera of a simulation (default: the first), with the simulated clock
-    offset passed as the known one, exactly as a recording of the same scene would be calibrated."""
+    """calibrate() inputs for one camera of a simulation (default: the first), exactly as a recording of
+    the same scene would be calibrated: the vehicle's poses from its V2X broadcasts where it sends CAMs (as
+    the daemon does), else its IMU poses (the toolbox's poses.yaml); the simulated vehicle clock offset is
+    passed as the configured one. The camera's latency is not passed: rsucal does not know it."""
+    if result.v2x_mode == "cam":
+        poses, _ = poses_from_v2x(result.v2x, UtmFrame(result.origin.crs))
+    else:
+        poses = result.poses
     camera = (
         result.cameras[0]
         if camera_id is None
@@ -382,7 +388,7 @@ def inputs_from_simulation(result: SimulationResult, camera_id: str | None = Non
         intrinsics=camera.intrinsics,
         vehicle=result.vehicle,
         detections=result.detections[camera.camera_id],
-        poses=result.poses,
+        poses=poses,
         crs=result.origin.crs,
         time_offset_ns=result.ground_truth[camera.camera_id].clock_offset_ns,
         station_id=result.station_id,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from schemas.common import CameraIntrinsics, Finite, Identifier, Matrix3, StampNs, StrictModel, Vec3
@@ -25,6 +27,30 @@ class GroundTruthFrame(StrictModel):
     box: tuple[Finite, Finite, Finite, Finite] | None = Field(
         default=None, description="x1, y1, x2, y2 (px) of the calib box as published (with detector jitter)"
     )
+    exposure_ns: StampNs | None = Field(
+        default=None, description="when the image was exposed (stamp_ns minus the camera's latency)"
+    )
+    visible_box: tuple[Finite, Finite, Finite, Finite] | None = Field(
+        default=None,
+        description="x1, y1, x2, y2 (px): true box of the visible outline, before detector errors",
+    )
+    cuboid_box: tuple[Finite, Finite, Finite, Finite] | None = Field(
+        default=None,
+        description="x1, y1, x2, y2 (px): rectangle of the data-sheet cuboid at exposure (unclipped)",
+    )
+    gross_error: Literal["merged", "split"] | None = Field(
+        default=None, description="the calib box is merged with another vehicle's, or one of two pieces"
+    )
+
+
+class CameraMove(StrictModel):
+    """The camera's true extrinsic from `from_exposure_ns` on (it was knocked between drive-pasts)."""
+
+    from_exposure_ns: StampNs
+    R: Matrix3
+    t_utm: Vec3
+    t_local: Vec3
+    camera_position_utm: Vec3
 
 
 class GroundTruth(StrictModel):
@@ -44,4 +70,14 @@ class GroundTruth(StrictModel):
     station_id: int = Field(ge=0, le=4_294_967_295)
     clock_offset_ns: int = Field(default=0, description="vehicle clock minus camera clock")
     traversals: int = Field(ge=0, description="traversals in which the vehicle was detected by this camera")
+    latency_ns: int = Field(
+        default=0, ge=0, description="detection stamp minus exposure time (unknown to rsucal)"
+    )
+    world: Literal["real", "ideal"] = Field(default="ideal", description="the simulated world's kind")
+    v2x: Literal["cam", "imu"] = Field(default="imu", description="CAM broadcasts or the IMU poses as V2X")
+    vehicle_type: str | None = Field(default=None, description="the calibration vehicle's body type")
+    vehicle_proportions: dict[str, float] = Field(
+        default_factory=dict, description="the calibration vehicle's drawn body proportions (m)"
+    )
+    moves: list[CameraMove] = Field(default_factory=list, description="later extrinsics, in time order")
     frames: list[GroundTruthFrame] = Field(default_factory=list)

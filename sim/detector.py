@@ -1,17 +1,29 @@
-"""Simulated detector: vehicle cuboids -> the boxes an RSU camera's detector reports, frame by frame.
+"""Simulated detector: vehicle bodies -> the boxes an RSU camera's detector reports, frame by frame.
 
-A vehicle's box is the tight rectangle around its 8 projected body corners (OpenCV lens model, with
-distortion), clipped at the image border. It is dropped when a corner is behind the camera, when most of
-it lies outside the image, when it is too small for a detector, or when most of it is hidden behind nearer
-vehicles or static occluders (measured on a sample grid inside the box). Then the detector's errors: edge
-jitter, misses, wrong classes and short-lived false positives. Everything is vectorised over all
-(frame, vehicle) instances of a camera at once; only vehicles on the road at a frame's time take part.
+A vehicle's box is the tight rectangle of its projected body (OpenCV lens model, with distortion): the
+bounds of the projected vertices of its surface (a polyhedron's image is bounded by its vertices' images).
+It is dropped when a vertex is behind the camera, when most of it lies outside the image, when it is too
+small for a detector, or when most of it is hidden behind nearer vehicles or static occluders.
+
+In the real world (`RealDetector` given) bodies are shapes, and the box is that of the *visible* outline:
+the part of the body's silhouette (the convex hull of its projected vertices) that no nearer silhouette
+covers and that lies inside the image, measured on a fine grid, with edges that nothing covers kept exact.
+Then what a detector gets wrong: a per-camera bias (scale, per-edge offsets), edge jitter correlated along
+each track (AR(1)), independent misses and misses in runs, wrong classes, two overlapping vehicles merged
+into one box or one split into two for a few frames, and short-lived false positives.
+
+In the ideal world (no `RealDetector`) boxes are the rectangles of cuboids, the hidden share is measured
+against nearer boxes' rectangles, and the jitter is independent: the first simulator, reproduced exactly.
+Random draws of the ideal world come from `rng` in its original order; everything the real world adds
+draws from its own generator, so the ideal world's numbers do not move.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from sim.geometry import BoolArray, FloatArray, IntArray, attitude_matrices
@@ -190,27 +202,385 @@ def hidden_fractions(
 
 @dataclass(frozen=True, eq=False)
 class Instances:
-    """Vehicles at camera frames: frame index (P,), corners (P, 8, 3) local, ground distance (P,) m from
-    the camera, class (P,), owner (P,) vehicle index (0 = the calibration vehicle when present)."""
+    """Vehicles at camera frames: frame index (P,), footprint-centre poses (P, 6) local, the body (P,) as an
+    index into the bodies' vertex arrays, ground distance (P,) m from the camera, class (P,), owner (P,)
+    vehicle index (0 = the calibration vehicle when present)."""
 
     frame: IntArray
-    corners: FloatArray
+    poses: FloatArray
+    body: IntArray
     distance: FloatArray
     cls: IntArray
     owner: IntArray
 
 
 @dataclass(frozen=True, eq=False)
+class RealDetector:
+    """What the real world's detector adds, drawn once per camera: box scale (1 + bias) and per-edge pixel
+    offsets (4,) x1, y1, x2, y2; `rng` draws everything else the real world adds."""
+
+    scale: float
+    edge_offsets_px: FloatArray
+    rng: np.random.Generator
+
+    @staticmethod
+    def draw(spec: DetectorSpec, rng: np.random.Generator) -> RealDetector:
+        scale = 1.0 + float(rng.uniform(-spec.scale_bias, spec.scale_bias))
+        offsets = rng.normal(0.0, spec.edge_bias_px, size=4) if spec.edge_bias_px > 0 else np.zeros(4)
+        return RealDetector(scale, np.asarray(offsets, dtype=np.float64), rng)
+
+
+# Gross-error codes of the calibration vehicle's box in a frame (RenderedFrames.calib_gross).
+GROSS_NONE, GROSS_MERGED, GROSS_SPLIT = 0, 1, 2
+
+
+@dataclass(frozen=True, eq=False)
 class RenderedFrames:
     """One camera's detections: per frame the boxes (K, 4), classes (K,), scores (K,) and the row index of
     the calibration vehicle's box (-1: not detected); `calib_detectable` (F,) says whether the vehicle
-    would have been detectable (projectable, mostly inside, big enough) before occlusion and misses."""
+    would have been detectable (projectable, mostly inside, big enough) before occlusion and misses;
+    `calib_visible_box` (F, 4) is the true box of its visible outline before the detector's errors (NaN
+    where it was not detected) and `calib_gross` (F,) a GROSS_* code for its box."""
 
     boxes: list[Boxes]
     classes: list[IntArray]
     scores: list[FloatArray]
     calib_row: IntArray
     calib_detectable: Mask
+    calib_visible_box: FloatArray
+    calib_gross: IntArray
+
+
+def _project_rows(
+    rows: IntArray,
+    instances: Instances,
+    bodies: tuple[FloatArray, ...],
+    R_cam_from_local: FloatArray,
+    t_cam_from_local: FloatArray,
+    lens: Lens,
+) -> tuple[list[FloatArray], Mask]:
+    """Projected vertices (K_b, 2) of each given instance row, and whether all of them are imageable."""
+    pixels: list[FloatArray] = [np.zeros((0, 2))] * len(rows)
+    imageable = np.zeros(len(rows), dtype=bool)
+    body_of = instances.body[rows]
+    for b in np.unique(body_of):
+        sel = np.flatnonzero(body_of == b)
+        vertices = bodies[int(b)]
+        poses = instances.poses[rows[sel]]
+        R = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
+        world = np.einsum("nij,kj->nki", R, vertices) + poses[:, None, :3]
+        cam = world.reshape(-1, 3) @ R_cam_from_local.T + t_cam_from_local
+        flat, flat_ok = lens.project_cam(cam)
+        px = flat.reshape(len(sel), len(vertices), 2)
+        for n, index in enumerate(sel):
+            pixels[index] = px[n]
+        imageable[sel] = flat_ok.reshape(len(sel), len(vertices)).all(axis=1)
+    return pixels, imageable
+
+
+def _raw_boxes(
+    instances: Instances,
+    bodies: tuple[FloatArray, ...],
+    R_cam_from_local: FloatArray,
+    t_cam_from_local: FloatArray,
+    lens: Lens,
+) -> ProjectedBoxes:
+    """Boxes of every instance, body by body (bounded memory: one body's frames at a time)."""
+    count = len(instances.frame)
+    raw = np.full((count, 4), np.nan)
+    projectable = np.zeros(count, dtype=bool)
+    for b, vertices in enumerate(bodies):
+        rows = np.flatnonzero(instances.body == b)
+        if len(rows) == 0:
+            continue
+        poses = instances.poses[rows]
+        R = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
+        points = np.einsum("nij,kj->nki", R, vertices) + poses[:, None, :3]
+        projected = project_boxes(points, R_cam_from_local, t_cam_from_local, lens)
+        raw[rows] = projected.raw
+        projectable[rows] = projected.projectable
+    clipped = np.column_stack(
+        [
+            np.clip(raw[:, 0], 0, lens.width),
+            np.clip(raw[:, 1], 0, lens.height),
+            np.clip(raw[:, 2], 0, lens.width),
+            np.clip(raw[:, 3], 0, lens.height),
+        ]
+    )
+    area = (raw[:, 2] - raw[:, 0]) * (raw[:, 3] - raw[:, 1])
+    inside_area = (clipped[:, 2] - clipped[:, 0]) * (clipped[:, 3] - clipped[:, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inside = np.where(projectable & (area > 0), inside_area / area, 0.0)
+    return ProjectedBoxes(raw, clipped, projectable, np.nan_to_num(inside, nan=0.0))
+
+
+def _hull(points: FloatArray) -> FloatArray:
+    """Convex hull (M, 2) of image points, counter-clockwise in the image's (u right, v down) axes."""
+    hull = cv2.convexHull(np.ascontiguousarray(points, dtype=np.float32), clockwise=False)
+    return np.asarray(hull, dtype=np.float64).reshape(-1, 2)
+
+
+def _inside_hull(hull: FloatArray, points: FloatArray) -> Mask:
+    """Whether each point (N, 2) lies inside the convex polygon `hull` (M, 2), boundary included."""
+    if len(hull) < 3:
+        return np.zeros(len(points), dtype=bool)
+    edge = np.roll(hull, -1, axis=0) - hull  # (M, 2)
+    rel = points[:, None, :] - hull[None, :, :]  # (N, M, 2)
+    cross = edge[None, :, 0] * rel[:, :, 1] - edge[None, :, 1] * rel[:, :, 0]
+    return np.asarray(np.all(cross >= -1e-9, axis=1) | np.all(cross <= 1e-9, axis=1), dtype=np.bool_)
+
+
+def _strictly_inside_hull(hull: FloatArray, points: FloatArray) -> Mask:
+    """Whether each point (N, 2) lies inside the convex polygon `hull` (M, 2), its boundary excluded (a
+    vertex on a nearer silhouette's edge is still seen)."""
+    if len(hull) < 3:
+        return np.zeros(len(points), dtype=bool)
+    edge = np.roll(hull, -1, axis=0) - hull
+    rel = points[:, None, :] - hull[None, :, :]
+    cross = edge[None, :, 0] * rel[:, :, 1] - edge[None, :, 1] * rel[:, :, 0]
+    return np.asarray(np.all(cross > 1e-9, axis=1) | np.all(cross < -1e-9, axis=1), dtype=np.bool_)
+
+
+def _clip_hull_to_image(hull: FloatArray, lens: Lens) -> FloatArray | None:
+    """Bounds [x1, y1, x2, y2] of the part of a convex silhouette inside the image (None: nothing)."""
+    image = np.array([[0, 0], [lens.width, 0], [lens.width, lens.height], [0, lens.height]], np.float32)
+    area, polygon = cv2.intersectConvexConvex(hull.astype(np.float32), image)
+    if polygon is None or area <= 0:
+        return None
+    pts = polygon.reshape(-1, 2).astype(np.float64)
+    return np.array([pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()])
+
+
+def _visible_outlines(
+    frame: IntArray,
+    boxes: Boxes,
+    distance: FloatArray,
+    hulls: list[FloatArray],
+    n_targets: int,
+    lens: Lens,
+    grid: int,
+) -> tuple[FloatArray, Boxes]:
+    """The real world's occlusion: for each of the first `n_targets` rows, the share of its silhouette
+    covered by nearer silhouettes of the same frame (vehicles and static occluders), and the box of what
+    remains visible inside the image.
+
+    `boxes` (P, 4) bound the silhouettes `hulls` (P of (M, 2)). The visible part's box bounds the hull
+    vertices nothing covers (exact) and the uncovered cells of a grid x grid sample of the silhouette (an
+    edge cut by a nearer silhouette is found to a cell)."""
+    hidden = np.zeros(n_targets)
+    visible = boxes[:n_targets].copy()
+    pair_i, pair_j = [], []
+    for i, j in _group_pairs(frame, 2_000_000):
+        bi, bj = boxes[i], boxes[j]
+        overlap = (np.minimum(bi[:, 2], bj[:, 2]) > np.maximum(bi[:, 0], bj[:, 0])) & (
+            np.minimum(bi[:, 3], bj[:, 3]) > np.maximum(bi[:, 1], bj[:, 1])
+        )
+        keep = (i < n_targets) & (distance[j] < distance[i]) & overlap
+        pair_i.append(i[keep])
+        pair_j.append(j[keep])
+    occluders_of: dict[int, list[int]] = {}
+    if pair_i:
+        for i, j in zip(np.concatenate(pair_i).tolist(), np.concatenate(pair_j).tolist(), strict=True):
+            occluders_of.setdefault(i, []).append(j)
+    cells = (np.arange(grid) + 0.5) / grid
+    for target in range(n_targets):
+        box = boxes[target]
+        outside_image = box[0] < 0 or box[1] < 0 or box[2] > lens.width or box[3] > lens.height
+        nearer = occluders_of.get(target, [])
+        if not nearer and not outside_image:
+            continue
+        hull = hulls[target]
+        in_image = box.copy()
+        if outside_image:
+            clipped = _clip_hull_to_image(hull, lens)
+            if clipped is None:
+                hidden[target] = 1.0
+                continue
+            in_image = clipped
+        if not nearer:
+            visible[target] = in_image
+            continue
+        w, h = box[2] - box[0], box[3] - box[1]
+        uu, vv = np.meshgrid(box[0] + cells * w, box[1] + cells * h)
+        samples = np.column_stack([uu.ravel(), vv.ravel()])
+        inside = _inside_hull(hull, samples)
+        inside &= (samples[:, 0] >= 0) & (samples[:, 0] <= lens.width)
+        inside &= (samples[:, 1] >= 0) & (samples[:, 1] <= lens.height)
+        covered = np.zeros(len(samples), dtype=bool)
+        vertex_covered = np.zeros(len(hull), dtype=bool)
+        for other in nearer:
+            covered |= _inside_hull(hulls[other], samples)
+            vertex_covered |= _strictly_inside_hull(hulls[other], hull)
+        n_inside = int(inside.sum())
+        if n_inside == 0:
+            hidden[target] = 1.0
+            continue
+        free = inside & ~covered
+        hidden[target] = 1.0 - free.sum() / n_inside
+        if not free.any():
+            continue
+        cells_free = samples[free]
+        half = 0.5 * np.array([w, h]) / grid
+        corners = np.concatenate([cells_free - half, cells_free + half, hull[~vertex_covered]])
+        # The visible part never reaches beyond the silhouette inside the image.
+        visible[target] = np.array(
+            [
+                max(corners[:, 0].min(), in_image[0]),
+                max(corners[:, 1].min(), in_image[1]),
+                min(corners[:, 0].max(), in_image[2]),
+                min(corners[:, 1].max(), in_image[3]),
+            ]
+        )
+    return hidden, visible
+
+
+def _track_order(owner: IntArray, frame: IntArray) -> list[IntArray]:
+    """Row indices of each track (one vehicle's boxes), in frame order."""
+    order = np.lexsort((frame, owner))
+    bounds = np.flatnonzero(np.diff(owner[order])) + 1
+    return [np.asarray(part, dtype=np.int64) for part in np.split(order, bounds) if len(part)]
+
+
+def _correlate_along_tracks(noise: FloatArray, owner: IntArray, frame: IntArray, rho: float) -> FloatArray:
+    """AR(1) along each track: e_k = rho^gap e_(k-1) + sqrt(1 - rho^(2 gap)) z_k, same marginal std as z."""
+    out = noise.copy()
+    for rows in _track_order(owner, frame):
+        gaps = np.diff(frame[rows]).astype(np.float64)
+        for n in range(1, len(rows)):
+            a = rho ** gaps[n - 1]
+            out[rows[n]] = a * out[rows[n - 1]] + math.sqrt(max(0.0, 1.0 - a * a)) * noise[rows[n]]
+    return out
+
+
+def _missed_in_runs(
+    owner: IntArray, frame: IntArray, start_p: float, mean_frames: float, rng: np.random.Generator
+) -> Mask:
+    """Gilbert-Elliott misses per track: a run starts with `start_p` per frame and lasts ~ geometric with
+    mean `mean_frames` frames."""
+    missed = np.zeros(len(owner), dtype=bool)
+    if start_p <= 0 or mean_frames <= 0:
+        return missed
+    stop_p = 1.0 / max(1.0, mean_frames)
+    for rows in _track_order(owner, frame):
+        draws = rng.random(len(rows))
+        in_run = False
+        for n, row in enumerate(rows):
+            in_run = draws[n] >= stop_p if in_run else draws[n] < start_p
+            missed[row] = in_run
+    return missed
+
+
+def _iou_pairs(frame: IntArray, boxes: Boxes, min_iou: float) -> tuple[IntArray, IntArray]:
+    """Pairs (i < j) of boxes in the same frame overlapping with IoU >= min_iou."""
+    out_i, out_j = [], []
+    for i, j in _group_pairs(frame, 2_000_000):
+        keep = i < j
+        i, j = i[keep], j[keep]
+        bi, bj = boxes[i], boxes[j]
+        iw = np.clip(np.minimum(bi[:, 2], bj[:, 2]) - np.maximum(bi[:, 0], bj[:, 0]), 0, None)
+        ih = np.clip(np.minimum(bi[:, 3], bj[:, 3]) - np.maximum(bi[:, 1], bj[:, 1]), 0, None)
+        inter = iw * ih
+        union = (bi[:, 2] - bi[:, 0]) * (bi[:, 3] - bi[:, 1]) + (bj[:, 2] - bj[:, 0]) * (bj[:, 3] - bj[:, 1])
+        union = union - inter
+        ok = inter >= min_iou * np.maximum(union, 1e-9)
+        out_i.append(i[ok])
+        out_j.append(j[ok])
+    if not out_i:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i_all, j_all = np.concatenate(out_i), np.concatenate(out_j)
+    order = np.argsort(frame[i_all], kind="stable")
+    return i_all[order], j_all[order]
+
+
+@dataclass(frozen=True, eq=False)
+class _Gross:
+    """Boxes after gross errors: which input rows survive (merged rows vanish into their partner), the
+    merged partner's union box replacing a survivor's, and extra split pieces appended."""
+
+    keep: Mask
+    boxes: Boxes
+    gross: IntArray  # (N,) GROSS_* of each input row's box
+    split_rows: IntArray  # (S,) input rows that were split: their second piece
+    split_boxes: Boxes  # (S, 4)
+    carries_calib: Mask  # (N,) the row's box is the calibration vehicle's (a merge passes it to the survivor)
+
+
+def _gross_errors(
+    frame: IntArray,
+    owner: IntArray,
+    distance: FloatArray,
+    boxes: Boxes,
+    is_calib: Mask,
+    spec: DetectorSpec,
+    rng: np.random.Generator,
+) -> _Gross:
+    """Two overlapping vehicles reported as one union box for 2-8 frames (a merge starts with
+    `merge_rate` per overlapping pair and frame; the nearer one's row carries it), and one vehicle
+    reported as two boxes for 1-4 frames (a split starts with `split_rate` per box), cut at 35-65 % of its
+    longer side."""
+    boxes = boxes.copy()
+    keep = np.ones(len(boxes), dtype=bool)
+    carries = is_calib.copy()
+    gross = np.full(len(boxes), GROSS_NONE, dtype=np.int64)
+    if spec.merge_rate > 0:
+        pi, pj = _iou_pairs(frame, boxes, 0.15)
+        active: dict[tuple[int, int], int] = {}  # (owner a, owner b) -> last frame of the merge
+        draws = rng.random(len(pi))
+        lengths = rng.integers(2, 9, size=len(pi))
+        for n, (i, j) in enumerate(zip(pi.tolist(), pj.tolist(), strict=True)):
+            if not (keep[i] and keep[j]):
+                continue
+            key = (int(min(owner[i], owner[j])), int(max(owner[i], owner[j])))
+            until = active.get(key, -1)
+            if frame[i] > until:
+                if draws[n] >= spec.merge_rate:
+                    continue
+                until = int(frame[i]) + int(lengths[n]) - 1
+                active[key] = until
+            near, far = (i, j) if distance[i] <= distance[j] else (j, i)
+            boxes[near] = [
+                min(boxes[i, 0], boxes[j, 0]),
+                min(boxes[i, 1], boxes[j, 1]),
+                max(boxes[i, 2], boxes[j, 2]),
+                max(boxes[i, 3], boxes[j, 3]),
+            ]
+            keep[far] = False
+            carries[near] |= carries[far]
+            carries[far] = False
+            gross[near] = gross[far] = GROSS_MERGED
+    split_rows: list[int] = []
+    split_boxes: list[list[float]] = []
+    if spec.split_rate > 0:
+        for rows in _track_order(owner, frame):
+            draws = rng.random(len(rows))
+            remaining = 0
+            for n, row in enumerate(rows):
+                if remaining == 0 and draws[n] < spec.split_rate:
+                    remaining = int(rng.integers(1, 5))
+                if remaining == 0 or not keep[row] or gross[row] != GROSS_NONE:
+                    remaining = max(0, remaining - 1)
+                    continue
+                remaining -= 1
+                x1, y1, x2, y2 = boxes[row]
+                cut = float(rng.uniform(0.35, 0.65))
+                if x2 - x1 >= y2 - y1:
+                    xm = x1 + cut * (x2 - x1)
+                    boxes[row] = [x1, y1, xm, y2]
+                    split_boxes.append([xm, y1, x2, y2])
+                else:
+                    ym = y1 + cut * (y2 - y1)
+                    boxes[row] = [x1, y1, x2, ym]
+                    split_boxes.append([x1, ym, x2, y2])
+                split_rows.append(row)
+                gross[row] = GROSS_SPLIT
+    return _Gross(
+        keep,
+        boxes,
+        gross,
+        np.asarray(split_rows, dtype=np.int64),
+        np.asarray(split_boxes, dtype=np.float64).reshape(-1, 4),
+        carries,
+    )
 
 
 def _false_positives(
@@ -245,12 +615,13 @@ def _finish_boxes(boxes: Boxes, camera: Lens) -> Boxes:
     return np.column_stack([x1, y1, x2, y2])
 
 
-def _edge_noise(boxes: Boxes, spec: DetectorSpec, camera: Lens, rng: np.random.Generator) -> FloatArray:
-    """Detector edge noise (N, 4): std grows with the box's size (floored at half the reference std), and
-    an edge cut by the image border stays on the border, as a detector reports a cut-off vehicle."""
+def _edge_noise(boxes: Boxes, draws: FloatArray, spec: DetectorSpec, camera: Lens) -> FloatArray:
+    """Detector edge noise (N, 4) from `draws` (N, 4) of the reference std: the std grows with the box's
+    size (floored at half the reference std), and an edge cut by the image border stays on the border, as
+    a detector reports a cut-off vehicle."""
     size = np.column_stack([boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]])[:, [0, 1, 0, 1]]
     scale = np.maximum(0.5, size / spec.jitter_reference_px)
-    noise = rng.normal(0.0, spec.box_jitter_px, size=boxes.shape) * scale
+    noise = draws * scale
     on_border = np.column_stack(
         [boxes[:, 0] <= 0.0, boxes[:, 1] <= 0.0, boxes[:, 2] >= camera.width, boxes[:, 3] >= camera.height]
     )
@@ -258,8 +629,21 @@ def _edge_noise(boxes: Boxes, spec: DetectorSpec, camera: Lens, rng: np.random.G
     return np.asarray(noise, dtype=np.float64)
 
 
+def _biased(boxes: Boxes, real: RealDetector, camera: Lens) -> Boxes:
+    """The camera's systematic box error: scaled about the centre, then each edge shifted; an edge cut by
+    the image border stays on it."""
+    centre = 0.5 * (boxes[:, :2] + boxes[:, 2:])
+    half = 0.5 * (boxes[:, 2:] - boxes[:, :2]) * real.scale
+    out = np.column_stack([centre - half, centre + half]) + real.edge_offsets_px
+    on_border = np.column_stack(
+        [boxes[:, 0] <= 0.0, boxes[:, 1] <= 0.0, boxes[:, 2] >= camera.width, boxes[:, 3] >= camera.height]
+    )
+    return np.asarray(np.where(on_border, boxes, out), dtype=np.float64)
+
+
 def render_frames(
     instances: Instances,
+    bodies: tuple[FloatArray, ...],
     frames: int,
     occluder_corners: FloatArray,
     R_cam_from_local: FloatArray,
@@ -267,9 +651,13 @@ def render_frames(
     camera: Lens,
     spec: DetectorSpec,
     rng: np.random.Generator,
+    real: RealDetector | None = None,
 ) -> RenderedFrames:
-    """The detector output of one camera for `frames` frames (see the module docstring for the rules)."""
-    projected = project_boxes(instances.corners, R_cam_from_local, t_cam_from_local, camera)
+    """The detector output of one camera for `frames` frames (see the module docstring for the rules).
+
+    `bodies` are vertex arrays (K_b, 3) relative to the footprint centre of each body (x forward, y left,
+    z up); `real` switches on the real world's detector (None: the ideal world, reproduced exactly)."""
+    projected = _raw_boxes(instances, bodies, R_cam_from_local, t_cam_from_local, camera)
     clipped = projected.clipped
     width, height = clipped[:, 2] - clipped[:, 0], clipped[:, 3] - clipped[:, 1]
     detectable = (
@@ -283,31 +671,60 @@ def render_frames(
     calib_detectable = np.zeros(frames, dtype=bool)
     calib_detectable[instances.frame[rows[is_calib[rows]]]] = True
 
-    # Static occluders take part in every frame as boxes that hide but are never detected or hidden.
+    # Static occluders take part in every frame: they hide vehicles but are never detected or hidden.
     occ = project_boxes(occluder_corners.reshape(-1, 8, 3), R_cam_from_local, t_cam_from_local, camera)
     occ_ok = np.flatnonzero(occ.projectable & (occ.inside_fraction > 0.0))
     camera_xy = (-R_cam_from_local.T @ t_cam_from_local)[:2]
     occ_distance = np.hypot(*(occluder_corners.reshape(-1, 8, 3)[occ_ok, :4, :2].mean(axis=1) - camera_xy).T)
     n_occ = len(occ_ok)
     frame = np.concatenate([instances.frame[rows], np.repeat(np.arange(frames), n_occ)])
-    boxes = np.concatenate([clipped[rows], np.tile(occ.clipped[occ_ok], (frames, 1))])
     distance = np.concatenate([instances.distance[rows], np.tile(occ_distance, frames)])
-    is_target = np.concatenate([np.ones(len(rows), bool), np.zeros(frames * n_occ, bool)])
-    hidden, visible = hidden_fractions(frame, boxes, distance, is_target, grid=spec.occlusion_grid)
-    hidden, visible = hidden[: len(rows)], visible[: len(rows)]
+    if real is None:
+        boxes = np.concatenate([clipped[rows], np.tile(occ.clipped[occ_ok], (frames, 1))])
+        is_target = np.concatenate([np.ones(len(rows), bool), np.zeros(frames * n_occ, bool)])
+        hidden, visible = hidden_fractions(frame, boxes, distance, is_target, grid=spec.occlusion_grid)
+        hidden, visible = hidden[: len(rows)], visible[: len(rows)]
+    else:
+        pixels, _ = _project_rows(rows, instances, bodies, R_cam_from_local, t_cam_from_local, camera)
+        occ_points = occluder_corners.reshape(-1, 8, 3)[occ_ok].reshape(-1, 3)
+        occ_pixels, _ = camera.project_cam(occ_points @ R_cam_from_local.T + t_cam_from_local)
+        occ_hulls = [_hull(p) for p in occ_pixels.reshape(-1, 8, 2)]
+        hulls = [_hull(p) for p in pixels] + occ_hulls * frames
+        boxes = np.concatenate([projected.raw[rows], np.tile(occ.raw[occ_ok], (frames, 1))])
+        hidden, visible = _visible_outlines(
+            frame, boxes, distance, hulls, len(rows), camera, max(spec.occlusion_grid, 24)
+        )
     keep = hidden <= spec.max_hidden_fraction
     rows, hidden = rows[keep], hidden[keep]
     det_boxes = visible[keep] if spec.visible_part_boxes else clipped[rows]
+    true_boxes = det_boxes.copy()
 
     box_height = det_boxes[:, 3] - det_boxes[:, 1]
     small = np.clip(1.0 - (box_height - spec.min_box_height_px) / (2.0 * spec.min_box_height_px), 0.0, 1.0)
+    found = np.ones(len(rows), dtype=bool)
     if spec.miss_rate > 0:
         # Misses are likelier for small and partly hidden vehicles.
         p_miss = np.clip(spec.miss_rate * (1.0 + 2.0 * hidden + 2.0 * small), 0.0, 0.9)
         found = rng.random(len(rows)) >= p_miss
-        rows, hidden, small, det_boxes = rows[found], hidden[found], small[found], det_boxes[found]
+    if real is not None:
+        owner, frame_of = instances.owner[rows], instances.frame[rows]
+        found &= ~_missed_in_runs(owner, frame_of, spec.miss_run_start, spec.miss_run_frames, real.rng)
+    rows, hidden, small, det_boxes, true_boxes = (
+        rows[found],
+        hidden[found],
+        small[found],
+        det_boxes[found],
+        true_boxes[found],
+    )
     if spec.box_jitter_px > 0:
-        det_boxes = det_boxes + _edge_noise(det_boxes, spec, camera, rng)
+        unit = rng.normal(0.0, spec.box_jitter_px, size=det_boxes.shape)
+        if real is not None and spec.jitter_ar1 > 0:
+            unit = _correlate_along_tracks(
+                unit, instances.owner[rows], instances.frame[rows], spec.jitter_ar1
+            )
+        det_boxes = det_boxes + _edge_noise(det_boxes, unit, spec, camera)
+    if real is not None:
+        det_boxes = _biased(det_boxes, real, camera)
     det_boxes = _finish_boxes(det_boxes, camera)
     cls = instances.cls[rows].copy()
     if spec.class_confusion > 0:
@@ -317,6 +734,25 @@ def render_frames(
     if spec.box_jitter_px > 0:
         score = score + rng.normal(0.0, 0.04, size=len(score))
     score = np.clip(score, 0.3, 0.99)
+    det_frame = instances.frame[rows]
+    det_calib = is_calib[rows]
+    # The truth: the calibration vehicle's visible-outline box before the detector's errors, per frame.
+    calib_true = np.full((frames, 4), np.nan)
+    calib_true[det_frame[det_calib]] = true_boxes[det_calib]
+    calib_gross = np.zeros(frames, dtype=np.int64)
+    if real is not None:
+        gross = _gross_errors(
+            det_frame, instances.owner[rows], instances.distance[rows], det_boxes, det_calib, spec, real.rng
+        )
+        calib_gross[det_frame[det_calib]] = gross.gross[det_calib]
+        extra = gross.split_rows
+        det_frame = np.concatenate([det_frame[gross.keep], det_frame[extra]])
+        det_boxes = np.concatenate(
+            [_finish_boxes(gross.boxes[gross.keep], camera), _finish_boxes(gross.split_boxes, camera)]
+        )
+        cls = np.concatenate([cls[gross.keep], cls[extra]])
+        score = np.concatenate([score[gross.keep], np.clip(score[extra] - 0.2, 0.3, 0.99)])
+        det_calib = np.concatenate([gross.carries_calib[gross.keep], np.zeros(len(extra), bool)])
 
     fp_frame, fp_boxes = _false_positives(frames, spec, camera, rng)
     in_range = fp_frame < frames
@@ -324,11 +760,11 @@ def render_frames(
     fp_cls = np.where(rng.random(len(fp_frame)) < 0.85, 4, rng.choice(CLASS_CHOICES, size=len(fp_frame)))
     fp_score = rng.uniform(0.25, 0.6, size=len(fp_frame))
 
-    all_frame = np.concatenate([instances.frame[rows], fp_frame])
+    all_frame = np.concatenate([det_frame, fp_frame])
     all_boxes = np.concatenate([det_boxes, fp_boxes])
     all_cls = np.concatenate([cls, fp_cls]).astype(np.int64)
     all_score = np.concatenate([score, fp_score])
-    all_calib = np.concatenate([is_calib[rows], np.zeros(len(fp_frame), bool)])
+    all_calib = np.concatenate([det_calib, np.zeros(len(fp_frame), bool)])
     # A detector lists boxes in no particular order: shuffle within each frame.
     order = np.lexsort((rng.random(len(all_frame)), all_frame))
     all_frame, all_boxes, all_cls = all_frame[order], all_boxes[order], all_cls[order]
@@ -343,4 +779,6 @@ def render_frames(
         scores=[all_score[bounds[f] : bounds[f + 1]] for f in range(frames)],
         calib_row=calib_row,
         calib_detectable=calib_detectable,
+        calib_visible_box=calib_true,
+        calib_gross=calib_gross,
     )

@@ -40,20 +40,21 @@ class Lens:
         lens = Lens(K, dist, intrinsics.width, intrinsics.height, float("inf"))
         if not np.any(dist != 0.0):
             return lens
-        radius = float(np.max(np.hypot(*lens.undistort(lens.border_pixels(3)).T)))
+        radius = float(np.max(np.hypot(*lens.undistort(lens.border_pixels(4)).T)))
         return Lens(K, dist, intrinsics.width, intrinsics.height, margin * radius)
 
     def border_pixels(self, per_side: int) -> FloatArray:
-        """`per_side` points along each image edge, corners included: (4 * per_side, 2) pixels."""
-        u = np.linspace(0.0, self.width, per_side)
-        v = np.linspace(0.0, self.height, per_side)
-        zeros, w, h = np.zeros(per_side), np.full(per_side, self.width), np.full(per_side, self.height)
+        """`per_side` points along each image edge, going round the border once (top left to right, right
+        side down, bottom right to left, left side up): (4 * per_side, 2) pixels."""
+        along = np.linspace(0.0, 1.0, per_side, endpoint=False)
+        w, h = float(self.width), float(self.height)
+        zeros, ones = np.zeros(per_side), np.ones(per_side)
         return np.concatenate(
             [
-                np.column_stack([u, zeros]),
-                np.column_stack([u, h]),
-                np.column_stack([zeros, v]),
-                np.column_stack([w, v]),
+                np.column_stack([along * w, zeros]),
+                np.column_stack([ones * w, along * h]),
+                np.column_stack([(1 - along) * w, ones * h]),
+                np.column_stack([zeros, (1 - along) * h]),
             ]
         )
 
@@ -82,5 +83,5 @@ class Lens:
 
     def view_bounds(self) -> FloatArray:
         """Normalised image-plane bounds [x_min, y_min, x_max, y_max] (undistorted) of the image."""
-        xy = self.undistort(self.border_pixels(9))
+        xy = self.undistort(self.border_pixels(16))
         return np.array([xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max()])

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 from schemas.common import VehicleProfile
 
@@ -61,11 +62,61 @@ class BumpSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class VerticalCurveSpec:
+    """A parabolic vertical curve on one arm: it starts `start_m` along the arm's centre line from the
+    junction centre, runs `length_m`, and changes the grade by `grade_change` (dimensionless, e.g. -0.04:
+    a crest; positive: a sag). The new grade then carries on to the arm's end and beyond."""
+
+    arm: str
+    start_m: float
+    length_m: float
+    grade_change: float
+
+
+@dataclass(frozen=True, slots=True)
 class GroundSpec:
-    """Ground z = slope . (x, y) + bumps (local frame)."""
+    """Terrain z = slope . (x, y) + bumps (local frame), with the roads built into it as they are.
+
+    The defaults are a real road (German RAL/RAS-L/RASt 06 and AASHTO Green Book figures): a 2 % crown
+    falling from each arm's centre line to its edges, 12 cm kerbs up to level footways and verges, 4 %
+    superelevation on the arms' bends (reached over `bank_transition_m`), kerb returns of 8 m radius at
+    the junction corners, whose area is flattened. `GroundSpec.flat()` is the old terrain alone (the
+    `ideal` world). Slopes are dimensionless (m/m), lengths metres."""
 
     slope: tuple[float, float] = (0.0, 0.0)
     bumps: tuple[BumpSpec, ...] = ()
+    # RAS-Q / RAA minimum cross slope 2.5 %, RASt 06 and AASHTO 1.5-2 % on urban streets: 2 % both ways.
+    crown_slope: float = 0.02
+    # RASt 06: kerb face 10-15 cm (lower at crossings); 12 cm is the common "Hochbord".
+    kerb_height_m: float = 0.12
+    # RASt 06 minimum footway 2.5 m; behind it the verge continues at footway height.
+    footway_width_m: float = 2.5
+    # Superelevation of the arms' bends, falling toward the inside (RAL: 2.5-6 % for R 200-400 m at
+    # 50-70 km/h; AASHTO e_max 4 % for urban roads).
+    bank_slope: float = 0.04
+    # Superelevation runoff: the carriageway revolves about its centre line from crown to bank over this
+    # length, 2/3 of it before the bend (AASHTO Green Book 3.3.8); RAS-L ramp gradients give 20-30 m.
+    bank_transition_m: float = 25.0
+    # RASt 06 kerb return (Eckausrundung) radii 6-12 m for cars and lorries turning; 8 m by default.
+    kerb_return_radius_m: float = 8.0
+    vertical_curves: tuple[VerticalCurveSpec, ...] = ()
+
+    @staticmethod
+    def flat(slope: tuple[float, float] = (0.0, 0.0), bumps: tuple[BumpSpec, ...] = ()) -> GroundSpec:
+        """The terrain alone, no road built into it: z = slope . (x, y) + bumps exactly (the old world)."""
+        return GroundSpec(
+            slope=slope, bumps=bumps, crown_slope=0.0, kerb_height_m=0.0, bank_slope=0.0, vertical_curves=()
+        )
+
+    @property
+    def is_flat(self) -> bool:
+        """No crown, kerb, bank or vertical curve: the ground is the terrain alone."""
+        return (
+            self.crown_slope == 0.0
+            and self.kerb_height_m == 0.0
+            and self.bank_slope == 0.0
+            and not self.vertical_curves
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,6 +234,45 @@ class TrafficSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class ClockSpec:
+    """The camera pipeline's clock: a DetectionFrame's stamp is the exposure time plus a latency drawn per
+    camera and seed within `latency_s` (unknown to rsucal), with a few ms of per-frame jitter, and an
+    optional slow drift (ppm of the elapsed time)."""
+
+    latency_s: tuple[float, float] = (0.0, 0.0)
+    latency_jitter_s: float = 0.0
+    drift_ppm: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class BodySpec:
+    """The calibration vehicle's body type, drawn per seed among `calibration_types` (its data-sheet
+    dimensions then drawn within the type's range); the ideal world uses the preset's `vehicle` cuboid."""
+
+    calibration_types: tuple[str, ...] = ("sedan", "hatchback", "estate", "suv")
+
+
+@dataclass(frozen=True, slots=True)
+class V2xSpec:
+    """How the calibration vehicle broadcasts: `cam` = ETSI CAM from its GNSS receiver (1-10 Hz, motion
+    triggered, no pitch or roll; errors from sim.v2x's GnssSpec, `rtk_float` adds float periods of 0.3-1 m
+    errors); `imu` = its 50-100 Hz IMU poses as V2X (the toolbox's data, and the ideal world)."""
+
+    mode: str = "cam"
+    rtk_float: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class CameraMoveSpec:
+    """The camera is knocked between two sets of drive-pasts: after traversal `after_traversal` (0-based)
+    it turns `turn_deg` about the vertical and shifts `shift_m` sideways (for change detection)."""
+
+    after_traversal: int
+    turn_deg: float
+    shift_m: float
+
+
+@dataclass(frozen=True, slots=True)
 class PoseSpec:
     """How the calibration vehicle reports its pose (GNSS/RTK + IMU): rate, noise, drift, dropouts, clock."""
 
@@ -219,6 +309,23 @@ class DetectorSpec:
     # whole projected cuboid (amodal, as the paper's DeepSIL/CARLA boxes).
     visible_part_boxes: bool = False
     occlusion_grid: int = 12  # samples per side of the grid that measures how much of a box is hidden
+    # --- what a real detector adds (all zero in the ideal world; see `ideal`)
+    # Per camera, drawn once per seed: the box scaled about its centre by a factor within 1 +- scale_bias
+    # (detectors trained on other data draw systematically loose or tight boxes), and each edge shifted by
+    # N(0, edge_bias_px) (a few pixels: the annotation convention of the training set).
+    scale_bias: float = 0.0
+    edge_bias_px: float = 0.0
+    # Edge jitter correlated along a track: AR(1) with this coefficient per frame (0 = independent). A
+    # tracker-less detector at 10 fps still sees nearly the same image twice, so its errors persist.
+    jitter_ar1: float = 0.0
+    # Misses that come in runs (Gilbert-Elliott, per track): the chance per frame that a run of misses
+    # starts, and the mean run length in frames. Independent misses (`miss_rate`) come on top.
+    miss_run_start: float = 0.0
+    miss_run_frames: float = 0.0
+    # Gross errors, per track: two overlapping vehicles reported as one box for a few frames (chance per
+    # overlapping pair and frame), and one vehicle reported as two boxes (chance per track and frame).
+    merge_rate: float = 0.0
+    split_rate: float = 0.0
 
 
 SIM_VEHICLE = VehicleProfile(length=4.8, width=1.85, height=1.5, imu_offset=(1.3, 0.925, 0.35))
@@ -239,6 +346,11 @@ class ScenarioConfig:
     traffic: TrafficSpec = field(default_factory=TrafficSpec)
     pose: PoseSpec = field(default_factory=PoseSpec)
     detector: DetectorSpec = field(default_factory=DetectorSpec)
+    clock: ClockSpec = field(default_factory=ClockSpec)
+    bodies: BodySpec = field(default_factory=BodySpec)
+    v2x: V2xSpec = field(default_factory=V2xSpec)
+    camera_move: CameraMoveSpec | None = None
+    ideal: bool = False  # the first simulator's world for this scene (see `ideal`)
     duration_s: float | None = None  # None: until the vehicle has left after its last traversal
     rsu_id: str = "sim-rsu"
     station_id: int = 4242
@@ -355,6 +467,8 @@ CARLA_LIKE = ScenarioConfig(
     # CARLA's default camera: 90 deg horizontal field of view, no distortion.
     cameras=(look_at("carla", 11.0, -13.0, 8.0, (-6.0, 8.0), width=1920, height=1080, fx=960.0),),
     drive=DriveSpec(routes=("E>W", "N>E", "S>N"), stops=(False, True, False)),
+    # The paper's CARLA data comes as the toolbox's 50 Hz IMU poses, not as CAMs.
+    v2x=V2xSpec(mode="imu"),
 )
 
 NOISE_02 = replace(SIL_SOUTH, name="noise-0.2", pose=replace(SIL_NOISE, position_sigma_m=0.2))
@@ -517,6 +631,135 @@ ROLLED = replace(
     drive=DriveSpec(routes=("W>E", "S>N", "E>W")),
 )
 
+# --- scenes of the real world that the first simulator could not make
+LATENCY = replace(SIL_NORTH, name="latency", clock=ClockSpec(latency_s=(0.25, 0.25), latency_jitter_s=0.003))
+# Night: headlights and noise make boxes looser and shakier and vehicles harder to find.
+NIGHT = replace(
+    SIL_SOUTH,
+    name="night",
+    detector=replace(
+        SIL_DETECTOR,
+        box_jitter_px=2.5,
+        miss_rate=0.08,
+        false_positives_per_frame=0.12,
+        scale_bias=0.07,
+        edge_bias_px=5.0,
+        jitter_ar1=0.85,
+        miss_run_start=0.03,
+        miss_run_frames=6.0,
+    ),
+)
+SUV = replace(SIL_WEST, name="suv", bodies=BodySpec(calibration_types=("suv",)))
+VAN = replace(SIL_NORTH, name="van", bodies=BodySpec(calibration_types=("van",)))
+RTK_FLOAT = replace(SIL_SOUTH, name="rtk-float", v2x=V2xSpec(rtk_float=True))
+# A junction on a real road: a pronounced crown (2.5 %), banked bends (5 %), a crest on the west arm and a
+# sag on the south arm in front of the camera, on sloping terrain.
+CROWNED_ROAD = ScenarioConfig(
+    name="crowned-road",
+    site=ROSENHEIM,
+    road=SKEWED_JUNCTION,
+    ground=GroundSpec(
+        slope=(0.015, -0.01),
+        crown_slope=0.025,
+        bank_slope=0.05,
+        vertical_curves=(
+            VerticalCurveSpec("W", 25.0, 60.0, -0.05),
+            VerticalCurveSpec("S", 20.0, 50.0, 0.04),
+            VerticalCurveSpec("N", 40.0, 80.0, -0.03),
+        ),
+    ),
+    cameras=(
+        look_at(
+            "crowned", 14.0, -15.0, 10.0, (-8.0, 6.0), principal_offset_px=(2.0, -3.0), dist=REGULAR_DIST
+        ),
+    ),
+    drive=DriveSpec(routes=("W>E", "S>N", "N>W")),
+    pose=SIL_NOISE,
+    detector=SIL_DETECTOR,
+)
+# One junction camera, eight drive-pasts; after the fourth the camera is knocked: 0.6 deg, 0.4 m.
+MOVED_CAMERA = replace(
+    SIL_NORTH,
+    name="moved-camera",
+    drive=DriveSpec(routes=("S>N", "W>S", "E>N", "N>S", "S>N", "W>S", "E>N", "N>S")),
+    camera_move=CameraMoveSpec(after_traversal=3, turn_deg=0.6, shift_m=0.4),
+)
+
+
+# --- the real world and the ideal one
+# Every scenario runs in the real world unless `ideal` is set: shaped bodies, a detector whose errors are at
+# least REAL_DETECTOR_FLOOR's (never lowered below a preset's own), an unknown camera latency and CAM V2X
+# from a GNSS receiver. `ideal` reproduces the first simulator's world for the same scene (cuboid bodies
+# whose boxes are the cuboid's rectangle, i.i.d. jitter, stamps at exposure, the IMU poses as V2X), so the
+# numbers measured in it stay reproducible. The figures below are the floor of realism, not a ceiling.
+REAL_DETECTOR_FLOOR = DetectorSpec(
+    box_jitter_px=1.0,
+    miss_rate=0.02,
+    false_positives_per_frame=0.03,
+    class_confusion=0.02,
+    visible_part_boxes=True,
+    scale_bias=0.04,
+    edge_bias_px=2.5,
+    jitter_ar1=0.8,
+    miss_run_start=0.01,
+    miss_run_frames=4.0,
+    merge_rate=0.02,
+    split_rate=0.002,
+)
+REAL_CLOCK = ClockSpec(latency_s=(0.04, 0.20), latency_jitter_s=0.003)
+_FLOORED = (
+    "box_jitter_px",
+    "miss_rate",
+    "false_positives_per_frame",
+    "class_confusion",
+    "scale_bias",
+    "edge_bias_px",
+    "jitter_ar1",
+    "miss_run_start",
+    "miss_run_frames",
+    "merge_rate",
+    "split_rate",
+)
+_REAL_ONLY = _FLOORED[4:]
+
+
+def world_detector(config: ScenarioConfig) -> DetectorSpec:
+    """The detector the scenario's world has (see the block comment above)."""
+    det = config.detector
+    if config.ideal:
+        zeros: dict[str, Any] = {name: 0.0 for name in _REAL_ONLY}
+        return replace(det, **zeros)
+    floored: dict[str, Any] = {
+        name: max(getattr(det, name), getattr(REAL_DETECTOR_FLOOR, name)) for name in _FLOORED
+    }
+    return replace(det, visible_part_boxes=True, **floored)
+
+
+def world_clock(config: ScenarioConfig) -> ClockSpec:
+    """The camera clock: stamps at exposure in the ideal world, a preset's own latency or REAL_CLOCK's."""
+    if config.ideal:
+        return ClockSpec()
+    return config.clock if config.clock.latency_s[1] > 0 else REAL_CLOCK
+
+
+def world_v2x_mode(config: ScenarioConfig) -> str:
+    """ "imu" (poses as V2X) in the ideal world, else the preset's ("cam" unless it needs IMU poses)."""
+    return "imu" if config.ideal else config.v2x.mode
+
+
+def world_ground(config: ScenarioConfig) -> GroundSpec:
+    """The ground: the preset's road (crown, kerbs, banks, vertical curves) in the real world, the terrain
+    alone (plane + bumps) in the ideal one."""
+    if config.ideal:
+        return GroundSpec.flat(config.ground.slope, config.ground.bumps)
+    return config.ground
+
+
+def ideal(config: ScenarioConfig) -> ScenarioConfig:
+    """The same scene in the first simulator's world."""
+    return replace(config, ideal=True)
+
+
 PRESETS: dict[str, ScenarioConfig] = {
     config.name: config
     for config in (
@@ -538,5 +781,12 @@ PRESETS: dict[str, ScenarioConfig] = {
         LONG,
         PORTRAIT,
         ROLLED,
+        LATENCY,
+        NIGHT,
+        SUV,
+        VAN,
+        RTK_FLOAT,
+        CROWNED_ROAD,
+        MOVED_CAMERA,
     )
 }

@@ -38,6 +38,8 @@ Color = tuple[int, int, int]
 HIGHLIGHT_BGR: Color = (255, 0, 255)
 FOOTPRINT_BGR: Color = (0, 255, 0)
 OTHER_BOX_BGR: Color = (255, 190, 40)
+OUTLINE_BGR: Color = (40, 220, 255)
+INSET_RANGE_M = 150.0
 LANE_CENTRE_BGR: Color = (0, 200, 255)
 JUNCTION_CENTRE_BGR: Color = (60, 130, 150)
 ROAD_EDGE_BGR: Color = (225, 225, 225)
@@ -292,6 +294,81 @@ def _draw_footprint(image: np.ndarray, view: _View, footprint: FloatArray) -> No
         )
 
 
+def _body_world_points(footprint: FloatArray, body: FloatArray) -> FloatArray:
+    """Body vertices (K, 3) about the footprint centre -> local frame, with the attitude the true footprint
+    (4, 3: rear-right, front-right, front-left, rear-left) shows."""
+    forward = footprint[1] - footprint[0]
+    left = footprint[3] - footprint[0]
+    x = forward / np.linalg.norm(forward)
+    y = left - x * float(left @ x)
+    y /= np.linalg.norm(y)
+    z = np.cross(x, y)
+    centre = footprint.mean(axis=0)
+    return np.asarray(centre + body @ np.stack([x, y, z]), dtype=np.float64)
+
+
+def _draw_outline(image: np.ndarray, view: _View, footprint: FloatArray, body: FloatArray) -> None:
+    """The calibration vehicle's true silhouette (the hull of its projected body), translucent, with its
+    edge: what the detector's box should bound."""
+    pixels, visible, _ = view.project(_body_world_points(footprint, body))
+    if int(visible.sum()) < 3:
+        return
+    hull = cv2.convexHull(_fixed(pixels[visible]).astype(np.int32))
+    overlay = image.copy()
+    cv2.fillConvexPoly(overlay, hull, OUTLINE_BGR, cv2.LINE_AA, _SUB)
+    cv2.addWeighted(overlay, 0.35, image, 0.65, 0.0, dst=image)
+    cv2.polylines(image, [hull], True, OUTLINE_BGR, 1, cv2.LINE_AA, _SUB)
+
+
+def _draw_inset(image: np.ndarray, result: SimulationResult, view: _View, focus: FloatArray | None) -> None:
+    """A top-down map in the bottom-right corner: lanes, the camera and the ground its image covers (up to
+    INSET_RANGE_M away), the calibration vehicle's true path and, if given, where it is in this frame."""
+    size = int(min(image.shape[0], image.shape[1]) * 0.36)
+    margin = 8
+    x0, y0 = image.shape[1] - size - margin, image.shape[0] - size - margin
+    panel = image[y0 : y0 + size, x0 : x0 + size]
+    panel[:] = (panel * 0.25 + 18).astype(np.uint8)
+    centre_cam = camera_position(view.R, view.t)
+    # Ground covered by the image: rays through the border, cut at the ground below the camera.
+    border = view.camera.undistort(view.camera.border_pixels(16))
+    rays = np.column_stack([border, np.ones(len(border))]) @ view.R
+    ground_z = float(result.world.ground_height(centre_cam[None, :2])[0])
+    down = -rays[:, 2]
+    reach = np.where(down > 1e-6, (centre_cam[2] - ground_z) / np.maximum(down, 1e-6), np.inf)
+    reach = np.minimum(reach, INSET_RANGE_M / np.maximum(np.hypot(rays[:, 0], rays[:, 1]), 1e-9))
+    covered = centre_cam[:2] + rays[:, :2] * reach[:, None]
+    span = np.concatenate([covered, centre_cam[None, :2]])
+    lo, hi = span.min(axis=0) - 15.0, span.max(axis=0) + 15.0
+    scale = (size - 2 * margin) / float(max(hi - lo))
+    mid = 0.5 * (lo + hi)
+
+    def to_px(xy: FloatArray) -> np.ndarray:
+        u = size / 2 + (xy[:, 0] - mid[0]) * scale
+        v = size / 2 - (xy[:, 1] - mid[1]) * scale  # north up
+        return np.round(np.column_stack([u, v]) * (1 << _SUB)).astype(np.int32)
+
+    cv2.fillPoly(panel, [to_px(covered)], (60, 70, 60), cv2.LINE_AA, _SUB)
+    for lane in result.world.lanes:
+        cv2.polylines(panel, [to_px(lane[:, :2])], False, LANE_CENTRE_BGR, 1, cv2.LINE_AA, _SUB)
+    path = result.true_poses[:, :2]
+    cv2.polylines(panel, [to_px(path)], False, HIGHLIGHT_BGR, 1, cv2.LINE_AA, _SUB)
+    cv2.circle(
+        panel,
+        tuple(int(c) for c in to_px(centre_cam[None, :2])[0]),
+        5 << _SUB,
+        (255, 255, 255),
+        -1,
+        cv2.LINE_AA,
+        _SUB,
+    )
+    if focus is not None:
+        cv2.polylines(panel, [to_px(focus[:, :2])], True, FOOTPRINT_BGR, 2, cv2.LINE_AA, _SUB)
+    cv2.rectangle(panel, (0, 0), (size - 1, size - 1), (200, 200, 200), 1)
+    cv2.putText(
+        panel, "N^  top-down", (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (230, 230, 230), 1, cv2.LINE_AA
+    )
+
+
 def _draw_legend(image: np.ndarray, lines: Sequence[str], keys: Sequence[tuple[Color, str]]) -> None:
     """Text panel in the top-left corner, scaled with the image width."""
     scale = max(0.4, image.shape[1] / 2400.0)
@@ -383,6 +460,9 @@ def render_preview(result: SimulationResult, camera_id: str | None = None) -> np
     else:
         frame = frames[index]
         calib_index = truth_frame.calib_box if truth_frame is not None else None
+        if truth_frame is not None and truth_frame.footprint_local is not None:
+            footprint = np.asarray(truth_frame.footprint_local, dtype=np.float64)
+            _draw_outline(image, view, footprint, result.calibration_body)
         _draw_boxes(image, frame, calib_index)
         # On top of the highlight: on a distant vehicle the footprint is only a few pixels across.
         if truth_frame is not None and truth_frame.footprint_local is not None:
@@ -398,14 +478,40 @@ def render_preview(result: SimulationResult, camera_id: str | None = None) -> np
         lines.append(
             f"{len(frame.boxes)} boxes in this frame, {status}; {result.traffic_count} other vehicles"
         )
+    focus = (
+        np.asarray(truth_frame.footprint_local, dtype=np.float64)
+        if truth_frame is not None and truth_frame.footprint_local is not None
+        else None
+    )
+    _draw_inset(image, result, view, focus)
+    world = (
+        "ideal world"
+        if result.is_ideal
+        else f"real world, latency {truth.latency_ns / 1e6:.0f} ms"
+        if truth
+        else ""
+    )
+    lines.append(f"{world}; calibration vehicle: {truth.vehicle_type if truth else '?'}")
     keys = [
         (HIGHLIGHT_BGR, f"calibration vehicle box (station {result.station_id})"),
-        (FOOTPRINT_BGR, "its true footprint"),
+        (OUTLINE_BGR, "its true outline"),
+        (FOOTPRINT_BGR, "its true footprint (data sheet)"),
         (OTHER_BOX_BGR, "other detections"),
         (LANE_CENTRE_BGR, "lane centre lines"),
     ]
     _draw_legend(image, lines, keys)
     return image
+
+
+def write_previews(result: SimulationResult, path: Path) -> list[Path]:
+    """One preview per camera: `path` itself for a single camera, PATH_<camera><suffix> for several."""
+    path = Path(path)
+    if len(result.cameras) <= 1:
+        return [write_preview(result, path)]
+    return [
+        write_preview(result, path.with_name(f"{path.stem}_{c.camera_id}{path.suffix}"), c.camera_id)
+        for c in result.cameras
+    ]
 
 
 def write_preview(result: SimulationResult, path: Path, camera_id: str | None = None) -> Path:

@@ -1,31 +1,65 @@
-"""Deterministic roadside-camera scenario simulator: `simulate(preset, seed) -> SimulationResult`.
+"""Deterministic roadside-camera scenario simulator: `simulate(preset, seed, ideal) -> SimulationResult`.
 
-It produces what a real RSU system receives, plus the truth: every camera's detection frames (camera
-clock, 10 fps with jitter), the calibration vehicle's own pose reports (absolute UTM, its own clock, with
-noise, drift, dropouts) and the same as V2X broadcasts (WGS84, true-north heading), and per camera the true
-extrinsic and which box is the calibration vehicle in every frame. The world (sim.world), the traffic
-(sim.traffic) and the detector (sim.detector) are described in their modules; presets in sim.presets.
-Everything random comes from np.random.default_rng(seed) via one child generator per component.
+It produces what a real RSU system receives, plus the truth: every camera's detection frames (stamped by
+the camera pipeline: exposure plus an unknown latency), the calibration vehicle's IMU pose reports (absolute
+UTM, 50 Hz, its own clock: the toolbox's poses.yaml) and its V2X broadcasts (ETSI CAMs from its GNSS receiver
+in the real world, the IMU poses in the ideal one), and per camera the true extrinsic(s), the latency and
+which box is the calibration vehicle in every frame. The world (sim.world), the traffic (sim.traffic), the
+bodies (sim.shapes), the detector (sim.detector) and V2X (sim.v2x) are described in their modules; presets
+and the two worlds in sim.presets. The ideal world draws from np.random.default_rng(seed) via one child
+generator per component, exactly as the first simulator did; what the real world adds draws from streams
+of its own, so the ideal world's numbers never move.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from schemas.common import Box, CameraIntrinsics, LocalOrigin, VehicleProfile
-from schemas.files import GroundTruth, GroundTruthFrame
+from schemas.files import CameraMove, GroundTruth, GroundTruthFrame
 from schemas.messages import DetectionFrame, V2xAccuracies, V2xPosition, VehiclePose
-from sim.detector import Instances, RenderedFrames, cuboid_corners, may_be_in_view, render_frames
+from sim.detector import (
+    GROSS_MERGED,
+    GROSS_SPLIT,
+    Instances,
+    RealDetector,
+    RenderedFrames,
+    may_be_in_view,
+    project_boxes,
+    render_frames,
+)
 from sim.errors import SimulationError
 from sim.geo import GeoFrame
 from sim.geometry import FloatArray, IntArray, camera_position, mount_rotation
 from sim.lens import Lens
-from sim.presets import PRESETS, CameraSpec, PoseSpec, ScenarioConfig
-from sim.shapes import cuboid_points, footprint_points, place_points, reference_from_footprint_centre
+from sim.presets import (
+    PRESETS,
+    CameraSpec,
+    ClockSpec,
+    PoseSpec,
+    ScenarioConfig,
+    world_clock,
+    world_detector,
+    world_ground,
+    world_v2x_mode,
+)
+from sim.presets import ideal as ideal_world
+from sim.shapes import (
+    BodyShape,
+    body_type_for_class,
+    cuboid_body,
+    cuboid_points,
+    draw_body,
+    footprint_points,
+    place_points,
+    reference_from_footprint_centre,
+)
 from sim.traffic import SimVehicle, TrafficResult, sample_vehicle, simulate_traffic
+from sim.v2x import CamSpec, GnssSpec, cam_generation, measure_gnss
 from sim.world import (
     GroundSurface,
     Occluder,
@@ -50,13 +84,25 @@ _STREAMS = ("clock", "drive", "traffic", "pose", "frames")
 
 
 @dataclass(frozen=True)
+class CameraPose:
+    """A camera's true extrinsic X_cam = R @ X_local + t (local frame, m) from `from_s` (simulation
+    seconds) on."""
+
+    from_s: float
+    R_cam_from_local: FloatArray  # (3, 3)
+    t_cam_from_local: FloatArray  # (3,)
+
+
+@dataclass(frozen=True)
 class SimulatedCamera:
-    """One simulated camera: intrinsics and the true extrinsic X_cam = R @ X_local + t (local frame, m)."""
+    """One simulated camera: intrinsics and the true extrinsic X_cam = R @ X_local + t (local frame, m) at
+    the start; `moves` are later extrinsics (a camera knocked between drive-pasts), in time order."""
 
     camera_id: str
     intrinsics: CameraIntrinsics
     R_cam_from_local: FloatArray  # (3, 3)
     t_cam_from_local: FloatArray  # (3,)
+    moves: tuple[CameraPose, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -72,12 +118,17 @@ class SimulationResult:
     cameras: tuple[SimulatedCamera, ...]
     detections: dict[str, list[DetectionFrame]]  # camera_id -> frames in time order (camera clock)
     poses: list[VehiclePose]  # reported: absolute UTM, vehicle clock, noise/drift/dropouts/offset applied
-    v2x: list[V2xPosition]  # the same poses as V2X broadcasts
+    v2x: list[V2xPosition]  # what the vehicle broadcasts: CAMs (real world) or its IMU poses (ideal world)
     ground_truth: dict[str, GroundTruth]  # camera_id -> truth
     world: WorldGeometry
     traffic_count: int  # other vehicles simulated
     true_poses: FloatArray  # (N, 6) noise-free reference-point poses of the calibration vehicle, local frame
     true_stamps: IntArray  # (N,) the same instants in the camera clock (ns)
+    calibration_body: FloatArray = field(
+        default_factory=lambda: np.zeros((0, 3))
+    )  # (K, 3) about its footprint centre
+    v2x_mode: str = "imu"  # "cam": calibrate from the V2X broadcasts; "imu": from `poses`
+    is_ideal: bool = True  # the first simulator's world
 
 
 def _camera_from_spec(spec: CameraSpec, ground: GroundSurface) -> SimulatedCamera:
@@ -128,52 +179,42 @@ def _instances(
     vehicles: list[SimVehicle],
     times: FloatArray,
     ground: GroundSurface,
-    camera: SimulatedCamera,
-    model: Lens,
+    pose: CameraPose,
+    lens: Lens,
     profile: VehicleProfile,
     windows: tuple[tuple[float, float], ...],
 ) -> tuple[Instances, _CalibrationTrack | None]:
     """All (frame, vehicle) pairs of one camera with the vehicle on the road at the frame's time and
     possibly in view (a conservative cull), plus the calibration vehicle's track at all its frames.
-    `vehicles[0]` is the calibration vehicle: owner 0 in the instances."""
-    frames, poses, dims, cls, owner = [], [], [], [], []
+    `vehicles[0]` is the calibration vehicle: owner 0 in the instances; vehicle i wears body i."""
+    frames, poses, cls, owner = [], [], [], []
     calib: _CalibrationTrack | None = None
-    calib_visible = np.zeros(0, dtype=bool)
-    R, t = camera.R_cam_from_local, camera.t_cam_from_local
-    view_bounds = model.view_bounds()
+    R, t = pose.R_cam_from_local, pose.t_cam_from_local
+    view_bounds = lens.view_bounds()
     for index, vehicle in enumerate(vehicles):
         first, last = np.searchsorted(times, [vehicle.t_start, vehicle.t_end], side="left")
         if last <= first:
             continue
         rows = np.arange(first, last)
         centre = sample_vehicle(vehicle, times[rows], ground).center_poses
-        radius = 0.5 * math.sqrt(vehicle.length**2 + vehicle.width**2 + vehicle.height**2)
+        # Mirrors and roof boxes reach a little beyond the data-sheet box: a generous sphere.
+        radius = 0.5 * math.sqrt(vehicle.length**2 + (vehicle.width + 0.6) ** 2 + (vehicle.height + 0.5) ** 2)
         middle = centre[:, :3] + np.array([0.0, 0.0, 0.5 * vehicle.height])
         visible = may_be_in_view(middle, np.full(len(rows), radius), R, t, view_bounds)
         if vehicle.is_calibration:
             calib = _CalibrationTrack(
                 rows, _reference_poses(centre, profile), _traversal_labels(times[rows], windows)
             )
-            calib_visible = visible
         frames.append(rows[visible])
         poses.append(centre[visible])
-        dims.append(np.tile([vehicle.length, vehicle.width, vehicle.height], (int(visible.sum()), 1)))
         cls.append(np.full(int(visible.sum()), vehicle.cls))
         owner.append(np.full(int(visible.sum()), index))
-    center_poses = np.concatenate(poses) if poses else np.zeros((0, 6))
-    corners = cuboid_corners(center_poses, np.concatenate(dims) if dims else np.zeros((0, 3)))
+    centre_poses = np.concatenate(poses) if poses else np.zeros((0, 6))
     owner_all = np.concatenate(owner).astype(np.int64) if owner else np.zeros(0, dtype=np.int64)
-    if calib is not None:
-        # The calibration vehicle's cuboid straight from its reference-point pose and profile.
-        corners[owner_all == 0] = place_points(
-            calib.poses[calib_visible],
-            cuboid_points(profile),
-            np.asarray(profile.imu_offset, dtype=np.float64),
-        )
-    distance = np.hypot(*(center_poses[:, :2] - camera_position(R, t)[:2]).T)
+    distance = np.hypot(*(centre_poses[:, :2] - camera_position(R, t)[:2]).T)
     frame_all = np.concatenate(frames).astype(np.int64) if frames else np.zeros(0, dtype=np.int64)
     cls_all = np.concatenate(cls).astype(np.int64) if cls else np.zeros(0, dtype=np.int64)
-    return Instances(frame_all, corners, distance, cls_all, owner_all), calib
+    return Instances(frame_all, centre_poses, owner_all, distance, cls_all, owner_all), calib
 
 
 def _traversal_labels(t: FloatArray, windows: tuple[tuple[float, float], ...]) -> np.ndarray:
@@ -276,9 +317,189 @@ def resolve_config(preset: str | ScenarioConfig) -> ScenarioConfig:
     return PRESETS[preset]
 
 
-def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
-    """Simulate one scenario; the same (preset, seed) always gives the same result."""
+def _real_rng(seed: int, stream: int) -> np.random.Generator:
+    """A generator for what the real world adds, independent of the ideal world's streams (so the ideal
+    world's draws, and its numbers, never move)."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1000 + stream,)))
+
+
+@dataclass(frozen=True, eq=False)
+class _Bodies:
+    """The vehicles' bodies: vertex arrays (K_i, 3) about each vehicle's footprint centre (vehicle i wears
+    body i), the calibration vehicle's profile as its data sheet gives it, its type and proportions."""
+
+    vertices: tuple[FloatArray, ...]
+    profile: VehicleProfile
+    vehicle_type: str | None
+    proportions: dict[str, float]
+
+
+def _centred(shape: BodyShape) -> FloatArray:
+    """The vertices of the body's convex hull, about the footprint centre (L/2, W/2, 0) of the data-sheet
+    box. They are all the detector needs: a box bounds, and a silhouette hull contains, the projections of
+    the 3D hull's vertices exactly as those of all vertices (a third to half as many to project)."""
+    vertices = shape.vertices[ConvexHull(shape.vertices).vertices]
+    return np.asarray(vertices - np.array([shape.length_m / 2.0, shape.width_m / 2.0, 0.0]), np.float64)
+
+
+def _calibration_body(config: ScenarioConfig, rng: np.random.Generator) -> tuple[BodyShape, VehicleProfile]:
+    """The calibration vehicle: the preset's cuboid in the ideal world; in the real one a body of a type
+    drawn per seed, its data sheet (L, W, H) drawn within the type's range, the IMU where the preset's is
+    relative to the body (near the rear axle, on the centre line)."""
+    if config.ideal:
+        v = config.vehicle
+        return cuboid_body(v.length, v.width, v.height), v
+    vehicle_type = str(rng.choice(list(config.bodies.calibration_types)))
+    shape = draw_body(vehicle_type, rng)
+    base = config.vehicle
+    imu = (
+        round(base.imu_offset[0] / base.length * shape.length_m, 3),
+        round(shape.width_m / 2.0, 3),
+        base.imu_offset[2],
+    )
+    profile = VehicleProfile(
+        length=round(shape.length_m, 3),
+        width=round(shape.width_m, 3),
+        height=round(shape.height_m, 3),
+        imu_offset=imu,
+    )
+    return shape, profile
+
+
+def _traffic_bodies(
+    vehicles: list[SimVehicle], calib: BodyShape, ideal: bool, rng: np.random.Generator
+) -> tuple[FloatArray, ...]:
+    """Body vertices of every vehicle: the calibration vehicle's, then each other vehicle's (a cuboid of its
+    traffic dimensions in the ideal world, else a shape of a type its class allows, with those dimensions)."""
+    bodies = [_centred(calib)]
+    for vehicle in vehicles[1:]:
+        if ideal:
+            shape = cuboid_body(vehicle.length, vehicle.width, vehicle.height)
+        else:
+            kind = body_type_for_class(
+                vehicle.cls, rng, length_m=vehicle.length, width_m=vehicle.width, height_m=vehicle.height
+            )
+            shape = draw_body(
+                kind, rng, length_m=vehicle.length, width_m=vehicle.width, height_m=vehicle.height
+            )
+        bodies.append(_centred(shape))
+    return tuple(bodies)
+
+
+def _camera_poses(camera: SimulatedCamera) -> tuple[CameraPose, ...]:
+    """The camera's extrinsics in time order, the first from the start."""
+    return (CameraPose(-math.inf, camera.R_cam_from_local, camera.t_cam_from_local), *camera.moves)
+
+
+def _segment_of(times: FloatArray, camera: SimulatedCamera) -> IntArray:
+    """Index (N,) into _camera_poses(camera) of the extrinsic in effect at each time (s)."""
+    starts = np.array([pose.from_s for pose in camera.moves])
+    return np.asarray(np.searchsorted(starts, times, side="right"), dtype=np.int64)
+
+
+def _moved(
+    camera: SimulatedCamera, config: ScenarioConfig, windows: tuple[tuple[float, float], ...]
+) -> SimulatedCamera:
+    """The camera knocked halfway between two traversals: turned about the vertical through its optical
+    centre and shifted sideways (horizontally, across its view), as config.camera_move says."""
+    move = config.camera_move
+    if move is None or move.after_traversal + 1 >= len(windows):
+        return camera
+    at_s = 0.5 * (windows[move.after_traversal][1] + windows[move.after_traversal + 1][0])
+    R = camera.R_cam_from_local
+    centre = camera_position(R, camera.t_cam_from_local)
+    turn = math.radians(move.turn_deg)
+    c, s_ = math.cos(turn), math.sin(turn)
+    Rz = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    R_new = R @ Rz.T  # the camera body turned by Rz in the local frame
+    right = R[0].copy()
+    right[2] = 0.0
+    right /= np.linalg.norm(right)
+    centre_new = centre + move.shift_m * right
+    return SimulatedCamera(
+        camera.camera_id,
+        camera.intrinsics,
+        R,
+        camera.t_cam_from_local,
+        (CameraPose(at_s, R_new, -R_new @ centre_new),),
+    )
+
+
+def _camera_stamps(
+    times: FloatArray, start_ns: int, clock: ClockSpec, rng: np.random.Generator
+) -> tuple[IntArray, int]:
+    """Detection stamps (N,) ns: exposure + the camera's latency (drawn per camera within clock.latency_s)
+    + a few ms of jitter (+ drift); and the latency in ns. Stamps stay strictly increasing."""
+    low, high = clock.latency_s
+    latency_s = float(rng.uniform(low, high)) if high > low else float(low)
+    jitter = clock.latency_jitter_s
+    noise = np.clip(rng.normal(0.0, jitter, size=len(times)), -3 * jitter, 3 * jitter) if jitter > 0 else 0.0
+    drift = clock.drift_ppm * 1e-6 * times
+    stamps = start_ns + np.round((times + latency_s + noise + drift) * 1e9).astype(np.int64)
+    # Frames are 1/fps apart and the jitters a few ms: the stamps stay strictly increasing.
+    return np.asarray(stamps, dtype=np.int64), round(latency_s * 1e9)
+
+
+def _cam_broadcasts(
+    vehicle: SimVehicle,
+    end_s: float,
+    ground: GroundSurface,
+    profile: VehicleProfile,
+    origin: LocalOrigin,
+    geo: GeoFrame,
+    config: ScenarioConfig,
+    start_ns: int,
+    rng: np.random.Generator,
+) -> list[V2xPosition]:
+    """The calibration vehicle's CAMs: its GNSS receiver's fixes (sim.v2x's error model, RTK fixed or with
+    float periods) at the CAM generation rules' instants; position of the reference point, course-over-
+    ground heading, odometry speed, the receiver's reported accuracies, no pitch or roll; stamped with the
+    fix time in the vehicle's clock."""
+    gnss = GnssSpec.rtk_float() if config.v2x.rtk_float else GnssSpec.rtk_fixed()
+    period = 1.0 / gnss.fix_rate_hz
+    fix_t = np.asarray(rng.uniform(0.0, period) + period * np.arange(math.floor(end_s / period)), np.float64)
+    states = sample_vehicle(vehicle, fix_t, ground)
+    reference = _reference_poses(states.center_poses, profile)
+    track = measure_gnss(fix_t, reference[:, :3], reference[:, 3], states.speed, gnss, rng)
+    sent = cam_generation(track.t_s, track.position, track.yaw, track.speed_mps, CamSpec())
+    east = track.position[sent, 0] + origin.x
+    north = track.position[sent, 1] + origin.y
+    lat, lon = geo.to_wgs84(east, north)
+    heading = geo.true_heading_deg(east, north, track.yaw[sent])
+    stamps = start_ns + np.round(fix_t[sent] * 1e9).astype(np.int64) + config.pose.clock_offset_ns
+    return [
+        V2xPosition(
+            station_id=config.station_id,
+            stamp_ns=int(stamp),
+            lat=float(la),
+            lon=float(lo),
+            alt=float(z + origin.z),
+            heading_deg=float(h),
+            speed=float(v),
+            length=profile.length,
+            width=profile.width,
+            accuracies=V2xAccuracies(horizontal_m=float(sh), vertical_m=float(sv)),
+        )
+        for stamp, la, lo, z, h, v, sh, sv in zip(
+            stamps,
+            lat,
+            lon,
+            track.position[sent, 2],
+            heading,
+            track.speed_mps[sent],
+            track.horizontal_std_m[sent],
+            track.vertical_std_m[sent],
+            strict=True,
+        )
+    ]
+
+
+def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> SimulationResult:
+    """Simulate one scenario; the same (preset, seed, ideal) always gives the same result. `ideal` runs the
+    scene in the first simulator's world (see sim.presets.ideal)."""
     config = resolve_config(preset)
+    if ideal:
+        config = ideal_world(config)
     children = np.random.SeedSequence(seed).spawn(len(_STREAMS) + len(config.cameras))
     rng = {name: np.random.default_rng(child) for name, child in zip(_STREAMS, children, strict=False)}
     camera_rngs = [np.random.default_rng(child) for child in children[len(_STREAMS) :]]
@@ -286,11 +507,11 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
     site = config.site
     origin = LocalOrigin(crs=site.crs, x=site.east_m, y=site.north_m, z=site.alt_m)
     origin_vec = np.array([origin.x, origin.y, origin.z])
-    ground = GroundSurface.from_spec(config.ground)
     network = build_network(config.road)
+    ground = GroundSurface.from_spec(world_ground(config), network)
     occluders = build_occluders(config.occluders, ground)
     world = WorldGeometry(lane_polylines(network, ground), occluders, ground)
-    profile = config.vehicle
+    calib_shape, profile = _calibration_body(config, _real_rng(seed, 0))
     traffic: TrafficResult = simulate_traffic(
         network,
         config.drive,
@@ -301,10 +522,11 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
         rng["traffic"],
     )
     vehicles = [traffic.calibration, *traffic.others]
+    bodies = _traffic_bodies(vehicles, calib_shape, config.ideal, _real_rng(seed, 1))
     # Camera clock at t = 0: the preset's start plus a seeded offset (< 3 h, ms resolution).
     start_ns = config.start_ns + int(rng["clock"].integers(0, 3 * 3600 * 1000)) * 1_000_000
 
-    # --- the vehicle's own pose reports
+    # --- the vehicle's own pose reports (its IMU, 50 Hz: the toolbox's poses.yaml)
     pose_t = _pose_instants(traffic.end_s, config.pose, rng["pose"])
     states = sample_vehicle(traffic.calibration, pose_t, ground)
     true_local, true_speed = _reference_poses(states.center_poses, profile), states.speed
@@ -323,34 +545,76 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
         )
         for stamp, p in zip(vehicle_stamps, reported, strict=True)
     ]
-    v2x = _v2x_messages(
-        poses, reported_speed, GeoFrame(origin.crs), config.station_id, profile, config.pose.position_sigma_m
-    )
+    geo = GeoFrame(origin.crs)
+    v2x_mode = world_v2x_mode(config)
+    if v2x_mode == "cam":
+        v2x = _cam_broadcasts(
+            traffic.calibration,
+            traffic.end_s,
+            ground,
+            profile,
+            origin,
+            geo,
+            config,
+            start_ns,
+            _real_rng(seed, 2),
+        )
+    else:
+        v2x = _v2x_messages(
+            poses, reported_speed, geo, config.station_id, profile, config.pose.position_sigma_m
+        )
 
     # --- cameras
-    cameras = tuple(_camera_from_spec(spec, ground) for spec in config.cameras)
+    detector = world_detector(config)
+    clock = world_clock(config)
+    cameras = tuple(
+        _moved(_camera_from_spec(spec, ground), config, traffic.traversal_windows) for spec in config.cameras
+    )
     occluder_corners = np.stack([o.corners for o in occluders]) if occluders else np.zeros((0, 8, 3))
     detections: dict[str, list[DetectionFrame]] = {}
     truths: dict[str, GroundTruth] = {}
-    for camera, camera_rng in zip(cameras, camera_rngs, strict=True):
-        times = _frame_times(
-            traffic.end_s, config.detector.fps, config.detector.frame_jitter_s, rng["frames"]
-        )
-        stamps = start_ns + np.round(times * 1e9).astype(np.int64)
-        model = Lens.from_intrinsics(camera.intrinsics)
-        instances, calib = _instances(
-            vehicles, times, ground, camera, model, profile, traffic.traversal_windows
-        )
-        rendered = render_frames(
-            instances,
-            len(times),
-            occluder_corners,
-            camera.R_cam_from_local,
-            camera.t_cam_from_local,
-            model,
-            config.detector,
-            camera_rng,
-        )
+    for index, (camera, camera_rng) in enumerate(zip(cameras, camera_rngs, strict=True)):
+        times = _frame_times(traffic.end_s, detector.fps, detector.frame_jitter_s, rng["frames"])
+        real_rng = _real_rng(seed, 100 + index)
+        stamps, latency_ns = _camera_stamps(times, start_ns, clock, real_rng)
+        lens = Lens.from_intrinsics(camera.intrinsics)
+        real = None if config.ideal else RealDetector.draw(detector, real_rng)
+        segments = _camera_poses(camera)
+        parts: list[RenderedFrames] = []
+        calib: _CalibrationTrack | None = None
+        segment = _segment_of(times, camera)
+        for n, pose in enumerate(segments):
+            first = int(np.searchsorted(segment, n, side="left"))
+            last = int(np.searchsorted(segment, n, side="right"))
+            instances, seg_calib = _instances(
+                vehicles, times[first:last], ground, pose, lens, profile, traffic.traversal_windows
+            )
+            parts.append(
+                render_frames(
+                    instances,
+                    bodies,
+                    last - first,
+                    occluder_corners,
+                    pose.R_cam_from_local,
+                    pose.t_cam_from_local,
+                    lens,
+                    detector,
+                    camera_rng,
+                    real,
+                )
+            )
+            if seg_calib is not None:
+                shifted = _CalibrationTrack(seg_calib.frames + first, seg_calib.poses, seg_calib.traversal)
+                calib = (
+                    shifted
+                    if calib is None
+                    else _CalibrationTrack(
+                        np.concatenate([calib.frames, shifted.frames]),
+                        np.concatenate([calib.poses, shifted.poses]),
+                        np.concatenate([calib.traversal, shifted.traversal]),
+                    )
+                )
+        rendered = _join(parts)
         detections[camera.camera_id] = [
             DetectionFrame(
                 camera_id=camera.camera_id,
@@ -372,7 +636,20 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
             )
         ]
         truths[camera.camera_id] = _ground_truth(
-            camera, origin, origin_vec, config, stamps, rendered, calib, profile
+            camera,
+            origin,
+            origin_vec,
+            config,
+            stamps,
+            times,
+            start_ns,
+            latency_ns,
+            rendered,
+            calib,
+            profile,
+            lens,
+            v2x_mode,
+            calib_shape,
         )
     return SimulationResult(
         preset=config.name,
@@ -390,6 +667,24 @@ def simulate(preset: str | ScenarioConfig, seed: int) -> SimulationResult:
         traffic_count=len(traffic.others),
         true_poses=true_local,
         true_stamps=true_stamps,
+        calibration_body=bodies[0],
+        v2x_mode=v2x_mode,
+        is_ideal=config.ideal,
+    )
+
+
+def _join(parts: list[RenderedFrames]) -> RenderedFrames:
+    """One camera's detections from consecutive time segments (a camera moved between them)."""
+    if len(parts) == 1:
+        return parts[0]
+    return RenderedFrames(
+        boxes=[b for part in parts for b in part.boxes],
+        classes=[c for part in parts for c in part.classes],
+        scores=[s for part in parts for s in part.scores],
+        calib_row=np.concatenate([part.calib_row for part in parts]),
+        calib_detectable=np.concatenate([part.calib_detectable for part in parts]),
+        calib_visible_box=np.concatenate([part.calib_visible_box for part in parts]),
+        calib_gross=np.concatenate([part.calib_gross for part in parts]),
     )
 
 
@@ -399,43 +694,84 @@ def _ground_truth(
     origin_vec: FloatArray,
     config: ScenarioConfig,
     stamps: IntArray,
+    times: FloatArray,
+    start_ns: int,
+    latency_ns: int,
     rendered: RenderedFrames,
     calib: _CalibrationTrack | None,
     profile: VehicleProfile,
+    lens: Lens,
+    v2x_mode: str,
+    calib_shape: BodyShape,
 ) -> GroundTruth:
-    """Per frame: the calibration vehicle's box index and box, traversal (while detectable or detected) and
-    true footprint at the frame's stamp."""
+    """Per frame: the calibration vehicle's box index and box, traversal (while detectable or detected),
+    true footprint at the frame's exposure, the true box of its visible outline and of its data-sheet
+    cuboid; per camera: the extrinsic(s), the latency, the vehicle's body."""
     calib_row, detectable = rendered.calib_row, rendered.calib_detectable
     traversal = np.full(len(stamps), -1, dtype=np.int64)
     footprints = np.full((len(stamps), 4, 3), np.nan)
+    cuboid_boxes = np.full((len(stamps), 4), np.nan)
+    imu = np.asarray(profile.imu_offset, dtype=np.float64)
     if calib is not None:
         traversal[calib.frames] = calib.traversal
-        footprints[calib.frames] = place_points(
-            calib.poses, footprint_points(profile), np.asarray(profile.imu_offset, dtype=np.float64)
-        )
+        footprints[calib.frames] = place_points(calib.poses, footprint_points(profile), imu)
+        corners = place_points(calib.poses, cuboid_points(profile), imu)
+        segment = _segment_of(times[calib.frames], camera)
+        for n, pose in enumerate(_camera_poses(camera)):
+            rows = np.flatnonzero(segment == n)
+            if len(rows):
+                projected = project_boxes(corners[rows], pose.R_cam_from_local, pose.t_cam_from_local, lens)
+                cuboid_boxes[calib.frames[rows]] = projected.raw
     frames = []
+    gross_names = {GROSS_MERGED: "merged", GROSS_SPLIT: "split"}
     for f, stamp in enumerate(stamps):
         row = int(calib_row[f])
         in_view = bool(detectable[f]) and traversal[f] >= 0
         if row < 0:
             frames.append(
-                GroundTruthFrame(stamp_ns=int(stamp), traversal=int(traversal[f]) if in_view else None)
+                GroundTruthFrame(
+                    stamp_ns=int(stamp),
+                    exposure_ns=start_ns + round(float(times[f]) * 1e9),
+                    traversal=int(traversal[f]) if in_view else None,
+                )
             )
             continue
         fp = footprints[f]
         box = rendered.boxes[f][row]
+        visible = rendered.calib_visible_box[f]
+        cuboid = cuboid_boxes[f]
         frames.append(
             GroundTruthFrame(
                 stamp_ns=int(stamp),
+                exposure_ns=start_ns + round(float(times[f]) * 1e9),
                 calib_box=row,
                 traversal=int(traversal[f]),
                 footprint_local=(tuple(fp[0]), tuple(fp[1]), tuple(fp[2]), tuple(fp[3])),
                 box=(float(box[0]), float(box[1]), float(box[2]), float(box[3])),
+                visible_box=None if np.isnan(visible[0]) else tuple(float(v) for v in visible),
+                cuboid_box=None if np.isnan(cuboid[0]) else tuple(float(v) for v in cuboid),
+                gross_error=gross_names.get(int(rendered.calib_gross[f])),
             )
         )
     R = camera.R_cam_from_local
     t_local = camera.t_cam_from_local
     detected = {int(traversal[f]) for f in range(len(stamps)) if calib_row[f] >= 0 and traversal[f] >= 0}
+    moves = [
+        CameraMove(
+            from_exposure_ns=start_ns + round(pose.from_s * 1e9),
+            R=(
+                tuple(pose.R_cam_from_local[0]),
+                tuple(pose.R_cam_from_local[1]),
+                tuple(pose.R_cam_from_local[2]),
+            ),
+            t_utm=tuple(pose.t_cam_from_local - pose.R_cam_from_local @ origin_vec),
+            t_local=tuple(pose.t_cam_from_local),
+            camera_position_utm=tuple(
+                camera_position(pose.R_cam_from_local, pose.t_cam_from_local) + origin_vec
+            ),
+        )
+        for pose in camera.moves
+    ]
     return GroundTruth(
         camera_id=camera.camera_id,
         crs=origin.crs,
@@ -448,5 +784,11 @@ def _ground_truth(
         station_id=config.station_id,
         clock_offset_ns=config.pose.clock_offset_ns,
         traversals=len(detected),
+        latency_ns=latency_ns,
+        world="ideal" if config.ideal else "real",
+        v2x="cam" if v2x_mode == "cam" else "imu",
+        vehicle_type=calib_shape.vehicle_type,
+        vehicle_proportions=dict(calib_shape.proportions),
+        moves=moves,
         frames=frames,
     )

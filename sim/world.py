@@ -5,6 +5,10 @@ A road network is built from a few arms leaving the junction centre (straight or
 inbound and outbound lanes (right-hand traffic); a route joins an inbound lane's far end, through its
 stop line and a turning arc, to an outbound lane's far end. The far connectors that carry the
 calibration vehicle from one traversal to the next run on a ring well outside every camera's view.
+
+The ground is the terrain (a plane plus Gaussian bumps) with the roads built into it (GroundSurface,
+RoadSurface): each arm's carriageway is crowned, banked on its bend and follows its vertical curves; kerbs
+step up to level footways and verges; the junction area is flattened and the arms blend into each other.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.errors import SimulationError
-from sim.geometry import FloatArray
+from sim.geometry import FloatArray, IntArray
 from sim.presets import GroundSpec, OccluderSpec, RoadSpec
 
 # Spacing of the dense path samples (m): arcs of 6 m radius deviate < 2 mm from their chords.
@@ -32,17 +36,210 @@ UNIT_BOX_CORNERS = np.array(
 )
 
 
+# Crown and bank fade in over this length (m) past the junction's kerb returns: the arms' cross slopes
+# run out into a nearly plane intersection (RASt 06 6.3: the junction area is profiled as one plane).
+JUNCTION_RAMP_M = 15.0
+# Neighbouring arms' surfaces blend where their centre lines are about equally near, over a band of
+# this width (m) plus the distance from the nearer road: narrow beside the carriageways, wide far out.
+ARM_BLEND_M = 10.0
+# The modelled site ends this far (m) inside the nearest arm end, where the out-of-view far connectors
+# leave the roads: kerbs ramp down over KERB_TAPER_M before it, so those drives stay on one surface.
+SITE_END_MARGIN_M = 10.0
+KERB_TAPER_M = 20.0
+# Straight arms get this "bend start" (m): never reached, so one vectorised formula serves every arm.
+_NO_BEND_M = 1.0e9
+
+CARRIAGEWAY, FOOTWAY, VERGE = 0, 1, 2
+
+
+@dataclass(frozen=True, eq=False)
+class RoadSurface:
+    """The roads' part of the ground (added to the terrain), from the arms' centre lines.
+
+    Every arm's centre line runs from the junction centre along `heading`, then (`bend_start` on) a
+    circular arc of `bend_radius` turning `bend_angle` rad to the side `bend_sign` (+1 left), then straight
+    on (extrapolated beyond the arm's end, as Path.at does). A point's station s (m along the arm) and
+    offset d (m, left of the outward direction) on each arm give that arm's height: its vertical curves
+    along s plus its cross section in d (crown, or bank on the bend), which is level beyond the edges.
+    Arms blend across their bisectors; kerbs lift everything off the carriageway (the union of the arms'
+    strips, its concave corners rounded by the kerb returns). Arrays are (A,) per arm; curves (C, 4) rows
+    of arm index, start (m), length (m), grade change."""
+
+    heading: FloatArray
+    bend_start: FloatArray
+    bend_sign: FloatArray
+    bend_radius: FloatArray
+    bend_angle: FloatArray
+    curves: FloatArray
+    half_width_m: float
+    crown_slope: float
+    bank_slope: float
+    bank_transition_m: float
+    kerb_height_m: float
+    footway_width_m: float
+    kerb_return_radius_m: float
+    junction_flat_m: float | None  # None: no junction (a plain road of two arms), nothing flattened
+    kerb_end_m: float  # kerbs are gone this far (m) from the junction centre
+
+    def arm_coordinates(self, xy: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(N, 2) local x, y -> station s and left offset d (A, N) in metres, on every arm's centre line."""
+        x, y = xy[:, 0][None, :], xy[:, 1][None, :]
+        cos_h, sin_h = np.cos(self.heading)[:, None], np.sin(self.heading)[:, None]
+        sign = self.bend_sign[:, None]
+        u = cos_h * x + sin_h * y
+        v = sign * (cos_h * y - sin_h * x)  # mirrored for right bends: every bend turns left below
+        b, rho, tau = self.bend_start[:, None], self.bend_radius[:, None], self.bend_angle[:, None]
+        qx, qy = u - b, v - rho  # from the arc's centre (b, rho)
+        theta = np.arctan2(qx, -qy)  # angle swept from the arc's start; <= 0 before the bend
+        end_x, end_y = b + rho * np.sin(tau), rho * (1.0 - np.cos(tau))
+        cos_t, sin_t = np.cos(tau), np.sin(tau)
+        after_s = b + rho * tau + (u - end_x) * cos_t + (v - end_y) * sin_t
+        after_d = (v - end_y) * cos_t - (u - end_x) * sin_t
+        on_arc = theta < tau
+        s = np.where(theta <= 0.0, u, np.where(on_arc, b + rho * theta, after_s))
+        d = np.where(theta <= 0.0, v, np.where(on_arc, rho - np.hypot(qx, qy), after_d))
+        return s, sign * d
+
+    def _carriageway_distance(self, s: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Distance (A, N) to each arm's centre line (its start is the junction centre), and the signed
+        distance (N,) to the carriageway's edge, approximately (exact along straight edges): <= 0 on it."""
+        dist = np.where(s < 0.0, np.hypot(s, d), np.abs(d))
+        edge = dist - self.half_width_m
+        if len(edge) == 1:
+            return dist, edge[0]
+        nearest = np.partition(edge, 1, axis=0)
+        a, b = nearest[0], nearest[1]
+        # Round union of the two nearest strips (hg_sdf fOpUnionRound): a circular kerb return of radius R
+        # where two arms' edges meet at a right angle, close to one at other angles.
+        radius = self.kerb_return_radius_m
+        inset = np.hypot(np.maximum(radius - a, 0.0), np.maximum(radius - b, 0.0))
+        return dist, np.maximum(radius, np.minimum(a, b)) - inset
+
+    def height(self, xy: FloatArray) -> FloatArray:
+        """(N, 2) local x, y -> (N,) height (m) the roads add to the terrain."""
+        s, d = self.arm_coordinates(xy)
+        dist, edge = self._carriageway_distance(s, d)
+        z_arm = np.zeros_like(s)
+        for arm, start, length, grade_change in self.curves:
+            # Parabolic vertical curve (RAS-L 5.2, AASHTO 3.4.6): the grade changes linearly over its length.
+            along = np.clip(s[int(arm)] - start, 0.0, length)
+            beyond = np.maximum(s[int(arm)] - start - length, 0.0)
+            z_arm[int(arm)] += grade_change * (0.5 * along * along / length + beyond)
+        offset = np.clip(d, -self.half_width_m, self.half_width_m)  # level beyond the edges
+        transition = self.bank_transition_m
+        bend_end = self.bend_start + self.bend_radius * self.bend_angle
+        ramp_up = (s - (self.bend_start - 2.0 * transition / 3.0)[:, None]) / transition
+        ramp_down = ((bend_end + 2.0 * transition / 3.0)[:, None] - s) / transition
+        banked = np.clip(np.minimum(ramp_up, ramp_down), 0.0, 1.0)
+        # Revolving the carriageway about its centre line: each side's cross slope changes linearly.
+        cross = (1.0 - banked) * (-self.crown_slope * np.abs(offset)) - banked * (
+            self.bank_slope * self.bend_sign[:, None] * offset
+        )
+        if self.junction_flat_m is not None:
+            t = np.clip((s - self.junction_flat_m) / JUNCTION_RAMP_M, 0.0, 1.0)
+            cross = cross * (t * t * (3.0 - 2.0 * t))
+        z_arm += cross
+        nearest = dist.min(axis=0)
+        t = (dist - nearest) / (ARM_BLEND_M + nearest)
+        weight = np.where(t < 1.0, 1.0 - t * t * (3.0 - 2.0 * t), 0.0)
+        z = (weight * z_arm).sum(axis=0) / weight.sum(axis=0)
+        kerb = np.clip((self.kerb_end_m - np.hypot(xy[:, 0], xy[:, 1])) / KERB_TAPER_M, 0.0, 1.0)
+        return np.asarray(z + np.where(edge > 0.0, self.kerb_height_m * kerb, 0.0), dtype=np.float64)
+
+    def surface_kind(self, xy: FloatArray) -> IntArray:
+        """(N, 2) -> (N,) CARRIAGEWAY, FOOTWAY (the first footway_width_m behind the kerb) or VERGE."""
+        s, d = self.arm_coordinates(xy)
+        _, edge = self._carriageway_distance(s, d)
+        kind = np.where(edge <= 0.0, CARRIAGEWAY, np.where(edge <= self.footway_width_m, FOOTWAY, VERGE))
+        return np.asarray(kind, dtype=np.int64)
+
+    @staticmethod
+    def from_spec(spec: GroundSpec, road: RoadSpec) -> RoadSurface:
+        """The road surface of `road`'s arms as `spec` describes it (checked: names, lengths, slopes)."""
+        arm_index = {arm.name: i for i, arm in enumerate(road.arms)}
+        for name in ("crown_slope", "kerb_height_m", "footway_width_m", "bank_slope", "kerb_return_radius_m"):
+            value = getattr(spec, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise SimulationError(f"ground.{name}", f"{value} is not a finite value >= 0")
+        if not (math.isfinite(spec.bank_transition_m) and spec.bank_transition_m > 0.0):
+            raise SimulationError("ground.bank_transition_m", f"{spec.bank_transition_m} is not > 0")
+        curves = []
+        for i, curve in enumerate(spec.vertical_curves):
+            where = f"ground.vertical_curves[{i}]"
+            if curve.arm not in arm_index:
+                raise SimulationError(where, f"arm = {curve.arm!r}; arms are {', '.join(arm_index)}")
+            if not (math.isfinite(curve.start_m) and curve.start_m >= 0.0):
+                raise SimulationError(where, f"start_m = {curve.start_m} is not >= 0")
+            if not (math.isfinite(curve.length_m) and curve.length_m > 0.0):
+                raise SimulationError(where, f"length_m = {curve.length_m} is not > 0")
+            if not math.isfinite(curve.grade_change):
+                raise SimulationError(where, f"grade_change = {curve.grade_change} is not finite")
+            curves.append([arm_index[curve.arm], curve.start_m, curve.length_m, curve.grade_change])
+        heading, bend_start, bend_sign, bend_radius, bend_angle = [], [], [], [], []
+        for arm in road.arms:
+            heading.append(math.radians(arm.angle_deg))
+            # The same bend as _arm_centreline draws: its arc clipped to the arm's length.
+            is_bent = arm.bend_deg != 0.0 and arm.bend_start_m < road.arm_length_m
+            arc_m = min(
+                abs(math.radians(arm.bend_deg)) * arm.bend_radius_m, road.arm_length_m - arm.bend_start_m
+            )
+            bend_start.append(arm.bend_start_m if is_bent else _NO_BEND_M)
+            bend_sign.append(math.copysign(1.0, arm.bend_deg) if is_bent else 1.0)
+            bend_radius.append(arm.bend_radius_m if is_bent else 1.0)
+            bend_angle.append(arc_m / arm.bend_radius_m if is_bent else 0.0)
+        half_width = road.lanes_per_direction * road.lane_width_m
+        junction_flat_m = None
+        if len(road.arms) >= 3:
+            # Kerb returns meet the arms' edges (w + R) / tan(phi / 2) from the centre, phi the angle
+            # between neighbouring arms: the junction area reaches that far along the sharpest corner.
+            angles = np.sort(np.mod(np.array(heading), 2.0 * math.pi))
+            gaps = np.diff(np.append(angles, angles[0] + 2.0 * math.pi))
+            sharpest = float(gaps.min())
+            junction_flat_m = (half_width + spec.kerb_return_radius_m) / math.tan(0.5 * sharpest)
+        arm_ends = [
+            float(
+                np.hypot(
+                    *_arm_centreline(
+                        a.angle_deg, road.arm_length_m, a.bend_start_m, a.bend_deg, a.bend_radius_m
+                    ).xy[-1]
+                )
+            )
+            for a in road.arms
+        ]
+        return RoadSurface(
+            heading=np.array(heading),
+            bend_start=np.array(bend_start),
+            bend_sign=np.array(bend_sign),
+            bend_radius=np.array(bend_radius),
+            bend_angle=np.array(bend_angle),
+            curves=np.array(curves, dtype=np.float64).reshape(-1, 4),
+            half_width_m=half_width,
+            crown_slope=spec.crown_slope,
+            bank_slope=spec.bank_slope,
+            bank_transition_m=spec.bank_transition_m,
+            kerb_height_m=spec.kerb_height_m,
+            footway_width_m=spec.footway_width_m,
+            kerb_return_radius_m=spec.kerb_return_radius_m,
+            junction_flat_m=junction_flat_m,
+            kerb_end_m=min(arm_ends) - SITE_END_MARGIN_M,
+        )
+
+
 @dataclass(frozen=True, eq=False)
 class GroundSurface:
-    """Road surface z(x, y) = slope . (x, y) + sum of Gaussian bumps (local frame, metres)."""
+    """Ground z(x, y) = slope . (x, y) + sum of Gaussian bumps (the terrain) + the roads built into it
+    (`road`; None: the terrain alone, the `ideal` world). Local frame, metres."""
 
     slope: FloatArray  # (2,) dz/dx, dz/dy
     bumps: FloatArray  # (K, 4) x, y, height, sigma
+    road: RoadSurface | None = None
 
     @staticmethod
-    def from_spec(spec: GroundSpec) -> GroundSurface:
+    def from_spec(spec: GroundSpec, network: RoadNetwork) -> GroundSurface:
+        """The ground of `spec` with `network`'s roads built in (none when `spec.is_flat`)."""
         bumps = np.array([[b.x_m, b.y_m, b.height_m, b.sigma_m] for b in spec.bumps], dtype=np.float64)
-        return GroundSurface(np.array(spec.slope, dtype=np.float64), bumps.reshape(-1, 4))
+        road = None if spec.is_flat else RoadSurface.from_spec(spec, network.road)
+        return GroundSurface(np.array(spec.slope, dtype=np.float64), bumps.reshape(-1, 4), road)
 
     def height(self, xy: FloatArray) -> FloatArray:
         """(N, 2) -> (N,) ground height in metres."""
@@ -50,7 +247,15 @@ class GroundSurface:
         for x0, y0, amplitude, sigma in self.bumps:
             d2 = (xy[:, 0] - x0) ** 2 + (xy[:, 1] - y0) ** 2
             z = z + amplitude * np.exp(-0.5 * d2 / (sigma * sigma))
+        if self.road is not None:
+            z = z + self.road.height(xy)
         return np.asarray(z, dtype=np.float64)
+
+    def surface_kind(self, xy: FloatArray) -> IntArray:
+        """(N, 2) -> (N,) CARRIAGEWAY, FOOTWAY or VERGE (all CARRIAGEWAY on the terrain alone)."""
+        if self.road is None:
+            return np.zeros(len(xy), dtype=np.int64)
+        return self.road.surface_kind(xy)
 
 
 @dataclass(frozen=True, eq=False)
@@ -268,6 +473,7 @@ class RoadNetwork:
     routes: dict[tuple[str, int, str, int], Route]
     ring_radius_m: float
     lanes_per_direction: int
+    road: RoadSpec  # the layout it was built from (the ground builds the roads' surface from its arms)
 
     def route(self, name: str) -> Route:
         """The route called "A>B" (arm names): right lane for straight and right turns, inner for left."""
@@ -357,7 +563,13 @@ def build_network(road: RoadSpec) -> RoadNetwork:
                 )
     far = max(float(np.hypot(*p.xy[-1])) for p in outbound.values())
     return RoadNetwork(
-        tuple(a.name for a in road.arms), inbound, outbound, routes, far + road.connector_clearance_m, lanes
+        tuple(a.name for a in road.arms),
+        inbound,
+        outbound,
+        routes,
+        far + road.connector_clearance_m,
+        lanes,
+        road,
     )
 
 

@@ -67,7 +67,7 @@ def _write_scene(sim: SimulationResult, directory: Path) -> Scene:
 
 @pytest.fixture(scope="module")
 def carla(tmp_path_factory: pytest.TempPathFactory) -> Scene:
-    scene = _write_scene(simulate("carla-like", seed=0), tmp_path_factory.mktemp("carla"))
+    scene = _write_scene(simulate("carla-like", seed=0, ideal=True), tmp_path_factory.mktemp("carla"))
     # The same scene once more as an MCAP, but built from what the YAML pair holds: boxes rounded to
     # 0.01 px and poses to 1 mm / 1e-9 rad. It isolates the MCAP path's own conversions (V2X lat/lon and
     # true heading -> UTM and grid yaw) from the YAML format's rounding.
@@ -182,7 +182,7 @@ def test_without_verbose_only_the_summary_is_printed(yaml_run: Run) -> None:
 def test_no_target_exits_3_with_the_reason(tmp_path: Path) -> None:
     # A shorter no-target scene (90 s of other traffic; the calibration vehicle drives elsewhere).
     config = dataclasses.replace(PRESETS["no-target"], duration_s=90.0)
-    scene = _write_scene(simulate(config, seed=0), tmp_path / "scene")
+    scene = _write_scene(simulate(config, seed=0, ideal=True), tmp_path / "scene")
     run = _rsucal([*scene.common(), "--mcap", *scene.files("recording.mcap")], tmp_path / "refused.json")
     assert run.code == cli.EXIT_REFUSED, run.stdout + run.stderr
     result = load_calibration_result(run.out)

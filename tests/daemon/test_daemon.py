@@ -34,7 +34,7 @@ RATE = 40.0  # time acceleration: the 251 s sil-west drive in ~6 s
 
 @pytest.fixture(scope="module")
 def sim() -> SimulationResult:
-    return simulate("sil-west", 0)
+    return simulate("sil-west", 0, ideal=True)  # the daemon's mechanics need a scene it calibrates
 
 
 @pytest.fixture(scope="module")

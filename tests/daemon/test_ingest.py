@@ -437,12 +437,12 @@ def test_configured_frame_is_used_for_poses() -> None:
 
 @pytest.fixture(scope="module")
 def sil_west() -> SimulationResult:
-    return simulate("sil-west", 0)  # 50 Hz V2X
+    return simulate("sil-west", 0, ideal=True)  # 50 Hz V2X (the IMU poses)
 
 
 @pytest.fixture(scope="module")
 def v2x_10hz() -> SimulationResult:
-    return simulate("v2x-10hz", 0)
+    return simulate("v2x-10hz", 0, ideal=True)
 
 
 @pytest.mark.parametrize("preset", ["sil-west", "v2x-10hz"])

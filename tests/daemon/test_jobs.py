@@ -64,7 +64,7 @@ class Scene:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> Scene:
-    sim = simulate("sil-west", seed=0)
+    sim = simulate("sil-west", seed=0, ideal=True)
     mcap = write_simulation_mcap(sim, tmp_path_factory.mktemp("jobs") / "sil-west.mcap")
     camera = sim.cameras[0]
     stamps = [m.stamp_ns for m in sim.v2x]

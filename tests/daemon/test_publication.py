@@ -65,7 +65,7 @@ REFUSAL_REASONS = ["position std 0.82 m > 0.5 m", "rotation std 0.91 deg > 0.5 d
 
 @pytest.fixture(scope="module")
 def sim() -> SimulationResult:
-    return simulate("sil-west", 0)
+    return simulate("sil-west", 0, ideal=True)
 
 
 @pytest.fixture(scope="module")

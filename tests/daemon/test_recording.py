@@ -497,7 +497,8 @@ def test_rejection_names_the_field(tmp_path: Path, mutate: object, field: str) -
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory) -> tuple[SimulationResult, Path]:
     out = tmp_path_factory.mktemp("sim")
-    result = simulate("single-traversal", seed=3)  # the smallest preset: one camera, one pass (~1 s)
+    # The smallest preset: one camera, one pass (~1 s).
+    result = simulate("single-traversal", seed=3, ideal=True)
     write_simulation_mcap(result, out / "recording.mcap")
     write_simulation_files(result, out)
     return result, out

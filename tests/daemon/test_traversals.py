@@ -81,7 +81,7 @@ def scenes() -> dict[str, Scene]:
     """The simulator's scenes, once per module (about a second in all)."""
     result = {}
     for preset in ("sil-west", "v2x-10hz", "single-traversal"):
-        sim = simulate(preset, 0)
+        sim = simulate(preset, 0, ideal=True)
         poses, rejected = poses_from_v2x(sim.v2x, UtmFrame(sim.origin.crs))
         assert rejected == 0
         result[preset] = Scene(sim, [(p.stamp_ns, p.x, p.y) for p in poses])

@@ -158,7 +158,7 @@ class Sessions:
 @pytest.fixture(scope="module")
 def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site]:
     tmp = tmp_path_factory.mktemp("secure-daemon")
-    sim = simulate("sil-west", 0)
+    sim = simulate("sil-west", 0, ideal=True)
     camera_id = sim.cameras[0].camera_id
     state_dir = tmp / "state"
     result = result_from_ground_truth(sim.ground_truth[camera_id], sim.rsu_id)

@@ -131,7 +131,7 @@ def _chunk_contents(data: bytes) -> tuple[tuple[tuple[int, int], ...], tuple[tup
 @functools.cache
 def simulation() -> SimulationResult:
     """The scene every MCAP and toolbox-pair fuzz test starts from (simulated once per process)."""
-    return simulate("carla-like", 0)
+    return simulate("carla-like", 0, ideal=True)
 
 
 @functools.cache

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow
 
 
 def test_portrait_camera_is_calibrated() -> None:
-    sim = simulate("portrait", seed=0)
+    sim = simulate("portrait", seed=0, ideal=True)
     (camera,) = sim.cameras
     inputs = calibration_inputs(sim, camera.camera_id)
     outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0))

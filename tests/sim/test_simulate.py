@@ -1,7 +1,11 @@
-"""The scenario simulator: determinism, rendering geometry, ground truth, pose reports, traffic, presets.
+"""The scenario simulator's ideal world: determinism, rendering geometry, ground truth, pose reports,
+traffic, presets.
 
-Scenes are shrunk presets (shorter arms, two traversals, little traffic) so the file runs in a few
-seconds; the geometry is checked against cv2.projectPoints, never against the simulator's own code.
+The ideal world (cuboid boxes, stamps at exposure, IMU poses as V2X) is the first simulator's, kept so that
+its numbers stay reproducible; its geometry is exact, so it is checked here to the micrometre against
+cv2.projectPoints, never against the simulator's own code. The real world has tests of its own
+(test_real_world.py, test_detector.py, test_shapes.py, test_roads.py, test_v2x.py). Scenes are shrunk
+presets (shorter arms, two traversals, little traffic) so the file runs in a few seconds.
 """
 
 from __future__ import annotations
@@ -36,8 +40,10 @@ def shrink(
     routes: tuple[str, ...] | None = None,
     traffic: int = 20,
     detector: DetectorSpec | None = None,
+    ideal: bool = True,
 ) -> ScenarioConfig:
-    """A faster variant: 260 m arms (connectors still ~300 m out), two traversals, little traffic."""
+    """A faster variant: 260 m arms (connectors still ~300 m out), two traversals, little traffic; in the
+    ideal world unless asked otherwise."""
     drive = replace(config.drive, routes=routes if routes is not None else config.drive.routes[:2])
     return replace(
         config,
@@ -45,6 +51,7 @@ def shrink(
         drive=drive,
         traffic=replace(config.traffic, count=traffic),
         detector=detector if detector is not None else config.detector,
+        ideal=ideal,
     )
 
 
@@ -90,7 +97,7 @@ def true_box(result: SimulationResult, camera_id: str, frame: int, distorted: bo
 
 
 def test_same_seed_gives_identical_output_and_another_seed_does_not() -> None:
-    config = shrink(PRESETS["sil-south"], routes=("W>E",), traffic=8)
+    config = shrink(PRESETS["sil-south"], routes=("W>E",), traffic=8, ideal=False)  # the real world
     a, b, c = simulate(config, 11), simulate(config, 11), simulate(config, 12)
 
     def dump(r: SimulationResult) -> tuple[object, ...]:
@@ -104,6 +111,7 @@ def test_same_seed_gives_identical_output_and_another_seed_does_not() -> None:
     assert np.array_equal(a.true_poses, b.true_poses)
     assert dump(a)[0] != dump(c)[0]
     assert dump(a)[1] != dump(c)[1]
+    assert [m.model_dump() for m in a.v2x] == [m.model_dump() for m in b.v2x]
 
 
 # --- rendering geometry (property tests) -------------------------------------------------------------
@@ -220,13 +228,15 @@ def test_render_drops_hidden_tiny_and_behind_vehicles_and_never_detects_occluder
     # Frame 0: a car 30 m ahead; frame 1: the same car, a car behind the camera and one 600 m away.
     centres = np.array([[30.0, 0.0], [30.0, 0.0], [-20.0, 0.0], [600.0, 0.0]])
     poses = np.column_stack([centres, np.zeros((4, 4))])
-    corners = cuboid_corners(poses, np.tile([4.5, 1.8, 1.5], (4, 1)))
-    instances = Instances(np.array([0, 1, 1, 1]), corners, np.hypot(*centres.T), np.full(4, 4), np.arange(4))
+    car = cuboid_corners(np.zeros((1, 6)), np.array([[4.5, 1.8, 1.5]]))[0]  # about the footprint centre
+    owners = np.arange(4)
+    instances = Instances(np.array([0, 1, 1, 1]), poses, owners, np.hypot(*centres.T), np.full(4, 4), owners)
+    bodies = (car, car, car, car)
     wall = cuboid_corners(np.array([[12.0, 0.0, 0.0, 0.0, 0.0, 0.0]]), np.array([[0.5, 6.0, 9.0]]))
     rng = np.random.default_rng(0)
-    free = render_frames(instances, 2, np.zeros((0, 8, 3)), R, t, model, CLEAN_DETECTOR, rng)
+    free = render_frames(instances, bodies, 2, np.zeros((0, 8, 3)), R, t, model, CLEAN_DETECTOR, rng)
     assert [len(b) for b in free.boxes] == [1, 1]  # behind the camera and too small: dropped
-    hidden = render_frames(instances, 2, wall, R, t, model, CLEAN_DETECTOR, rng)
+    hidden = render_frames(instances, bodies, 2, wall, R, t, model, CLEAN_DETECTOR, rng)
     assert [len(b) for b in hidden.boxes] == [0, 0]  # the wall hides the car and is never detected itself
     # Owner 0 is the calibration vehicle (frame 0 only): detectable, but hidden, so no box.
     assert hidden.calib_row.tolist() == [-1, -1] and hidden.calib_detectable.tolist() == [True, False]
@@ -373,7 +383,7 @@ def test_no_target_never_shows_the_vehicle() -> None:
             PRESETS["no-target"], duration_s=60.0, traffic=replace(PRESETS["no-target"].traffic, count=15)
         ),
         seed=2,
-    )
+    )  # the real world: nothing there either
     truth = result.ground_truth["south"]
     assert truth.traversals == 0
     assert all(f.calib_box is None and f.traversal is None for f in truth.frames)
