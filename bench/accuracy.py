@@ -18,6 +18,7 @@ Columns (aggregated per preset over all cameras and seeds):
   ref        refused runs;  FA  false accepts: accepted with position error > 0.5 m or rotation > 0.5 deg
   err        runs that raised;  t  median calibrate() seconds per camera
   floor      the true calibration on the same boxes: delta_p mean (m) / e_m (%), mean over all runs
+  cover      accepted runs whose position or rotation error exceeds 3 x the reported std / accepted runs
   lat ms     the cameras' true latency (detection stamp minus exposure), mean over runs (unknown to rsucal)
   area       the calibration vehicle's detected box area / its data-sheet cuboid's rectangle, mean over
              frames where the cuboid lies wholly inside the image and the box is no merge or split
@@ -364,6 +365,16 @@ def box_area_ratio(truth: Any) -> float | None:
     return statistics.fmean(ratios) if ratios else None
 
 
+def beyond_reported(run: Run, sigmas: float = 3.0) -> bool:
+    """An accepted run whose camera position or rotation error exceeds `sigmas` x its reported std."""
+    position_std, rotation_std = run.get("position_std_m"), run.get("rotation_std_deg")
+    if position_std is None or rotation_std is None or run.get("position_error_m") is None:
+        return True
+    return bool(
+        run["position_error_m"] > sigmas * position_std or run["rotation_error_deg"] > sigmas * rotation_std
+    )
+
+
 def run_seed(task: tuple[str, int, bool]) -> list[Run]:
     """simulate(preset, seed), calibrate() every camera, evaluate: one record per camera."""
     import numpy as np
@@ -489,6 +500,7 @@ def summarise(preset: str, runs: Sequence[Run]) -> dict[str, Any]:
         "median_seconds": statistics.median([r["seconds"] for r in runs if "seconds" in r] or [math.nan]),
         "floor_delta_p_mean_m": _mean([r.get("floor_delta_p_mean_m") for r in runs]),
         "floor_e_mean_pct": _mean([r.get("floor_e_mean_pct") for r in runs]),
+        "beyond_3_std": sum(beyond_reported(r) for r in accepted),
         "latency_ms": _mean([r.get("latency_ms") for r in runs]),
         "box_area_ratio": _mean([r.get("box_area_ratio") for r in runs]),
         "paper": PAPER.get(preset, ""),
@@ -524,6 +536,7 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
         "err",
         "t s",
         "floor dp/e_m",
+        "cover",
         "lat ms",
         "area",
         "paper",
@@ -545,6 +558,7 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
                 str(s["errors"]),
                 _fmt(s["median_seconds"], ".1f"),
                 _pair(s["floor_delta_p_mean_m"], s["floor_e_mean_pct"], ".3f"),
+                f"{s.get('beyond_3_std', 0)}/{s['accepted']}" if s["accepted"] else "-",
                 _fmt(s.get("latency_ms"), ".0f"),
                 _fmt(s.get("box_area_ratio"), ".3f"),
                 s["paper"],
@@ -553,7 +567,7 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
             )
         )
     rows.append(
-        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "", "",
+        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "", "", "",
          "false accepts = 0", "PASS" if false_accepts == 0 and errors == 0 else "FAIL")
     )  # fmt: skip
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]

@@ -121,15 +121,22 @@ def session_config(zenoh_config: ZenohConfig) -> zenoh.Config:
     return config
 
 
+def _endpoints(config: zenoh.Config, side: Literal["listen", "connect"]) -> list[str]:
+    # zenoh's per-mode form {"peer": [...], "client": [...]} resolved for the config's own mode.
+    mode = json.loads(config.get_json("mode"))
+    value = json.loads(config.get_json(f"{side}/endpoints"))
+    return list(value.get(mode, []) if isinstance(value, dict) else value)
+
+
 def effective_endpoints(config: zenoh.Config) -> list[str]:
     """The listen and connect endpoints a session config will use (with a config_file these can be the
-    file's, not rsu.yaml's defaults); zenoh's per-mode form {"peer": [...], ...} resolved for its mode."""
-    mode = json.loads(config.get_json("mode"))
-    endpoints: list[str] = []
-    for path in ("listen/endpoints", "connect/endpoints"):
-        value = json.loads(config.get_json(path))
-        endpoints.extend(value.get(mode, []) if isinstance(value, dict) else value)
-    return endpoints
+    file's, not rsu.yaml's defaults)."""
+    return _endpoints(config, "listen") + _endpoints(config, "connect")
+
+
+def connect_endpoints(config: zenoh.Config) -> list[str]:
+    """The endpoints a session config connects to (a client config file's own, unless replaced)."""
+    return _endpoints(config, "connect")
 
 
 def client_config(

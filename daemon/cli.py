@@ -53,8 +53,20 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     boxes = sum(len(fr.boxes) for f in result.detections.values() for fr in f)
     print(
         f"preset {args.preset} seed {args.seed}: {len(result.cameras)} camera(s), {frames} frames, "
-        f"{boxes} boxes, {len(result.poses)} vehicle poses, {result.traffic_count} other vehicles"
+        f"{boxes} boxes, {len(result.poses)} vehicle poses, {len(result.v2x)} V2X messages, "
+        f"{result.traffic_count} other vehicles"
     )
+    truth = next(iter(result.ground_truth.values()), None)
+    if truth is not None:
+        v = result.vehicle
+        world = "ideal world" if result.is_ideal else "real world"
+        latencies = ", ".join(
+            f"{t.camera_id} {t.latency_ns / 1e6:.0f} ms" for t in result.ground_truth.values()
+        )
+        print(
+            f"  {world}: calibration vehicle {truth.vehicle_type} {v.length:.2f} x {v.width:.2f} x "
+            f"{v.height:.2f} m, V2X {truth.v2x}, camera latency {latencies} (in the ground truth only)"
+        )
     for path in written:
         print(f"  wrote {path}")
     return EXIT_OK
@@ -133,10 +145,10 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
     if not storage.state_dir.is_absolute():
         storage = storage.model_copy(update={"state_dir": (base / storage.state_dir).resolve()})
     zenoh_config = config.zenoh
-    if zenoh_config.config_file is not None and not zenoh_config.config_file.is_absolute():
-        zenoh_config = zenoh_config.model_copy(
-            update={"config_file": (base / zenoh_config.config_file).resolve()}
-        )
+    for name in ("config_file", "access_control_file"):
+        path = getattr(zenoh_config, name)
+        if path is not None and not path.is_absolute():
+            zenoh_config = zenoh_config.model_copy(update={name: (base / path).resolve()})
     cameras = [
         camera.model_copy(
             update={"detector": camera.detector.model_copy(update={"model": (base / camera.detector.model)})}
@@ -146,6 +158,20 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
         for camera in config.cameras
     ]
     return config.model_copy(update={"storage": storage, "zenoh": zenoh_config, "cameras": cameras})
+
+
+def _cmd_access_control(args: argparse.Namespace) -> int:
+    from daemon.access import write_site_config
+    from pipeline.loaders import load_daemon_config
+
+    config_path = Path(args.config)
+    config = _resolve_relative_paths(load_daemon_config(config_path), config_path.parent)
+    out = write_site_config(config, Path(args.base), Path(args.out))
+    print(
+        f"wrote {out}: {args.base} with put rules for {len(config.vehicles)} vehicle(s) and "
+        f"{len(config.cameras)} camera(s) of rsu {config.rsu_id}; restart the node that enforces it"
+    )
+    return EXIT_OK
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -246,12 +272,27 @@ def build_parser() -> argparse.ArgumentParser:
     dmn.add_argument("--config", required=True, help="rsu.yaml (see deploy/rsu.example.yaml)")
     dmn.set_defaults(func=_cmd_daemon)
 
+    acl = sub.add_parser(
+        "access-control",
+        help="write a secure Zenoh config whose access rules let each detector and vehicle publish only its "
+        "own keys",
+        description="Copy a secure Zenoh config (--base: deploy/zenoh/secure.json5 for a secure peer, "
+        "secure-router.json5 for a router) with one put rule per calibration vehicle (v2x/cam/{station_id}) "
+        "and per camera (its detections and images), bound to the certificate common names of rsu.yaml. "
+        "The daemon refuses to start (exit 2) when the rules it runs with do not match its config.",
+    )
+    acl.add_argument("--config", required=True, help="rsu.yaml: cameras, vehicles and their certificates")
+    acl.add_argument("--base", required=True, help="the Zenoh config to start from (its other rules stay)")
+    acl.add_argument("--out", required=True, help="the Zenoh config to write (JSON, valid JSON5)")
+    acl.set_defaults(func=_cmd_access_control)
+
     st = sub.add_parser("status", help="query calibration status and health over Zenoh, as a table")
     st.add_argument(
         "--connect",
         action="append",
         default=None,
-        help="Zenoh endpoint of the daemon or a router (repeatable; default tcp/127.0.0.1:7447)",
+        help="Zenoh endpoint of the daemon or a router (repeatable; default: those of --zenoh-config, "
+        "else tcp/127.0.0.1:7447)",
     )
     st.add_argument(
         "--zenoh-config",

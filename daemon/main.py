@@ -31,6 +31,7 @@ import numpy as np
 import zenoh
 
 from daemon import __version__
+from daemon.access import check_access_rules
 from daemon.bus import Bus, BusError, Handlers, session_config
 from daemon.clock import Clock, SystemClock
 from daemon.detector import DetectorWorker, ImageRouter, build_workers
@@ -164,7 +165,10 @@ class Daemon:
     # ------------------------------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
-        """Recover state, start job workers and threads, then go on the bus (BusError on a bad endpoint)."""
+        """Recover state, start job workers and threads, then go on the bus (BusError on a bad endpoint;
+        AccessControlError when a secure deployment's access rules do not match the config)."""
+        if check_access_rules(self.config):
+            log.info("access rules match the config: each camera and vehicle may publish only its own keys")
         # Detector models load first: a bad one is a configuration error, before anything starts.
         self._detectors = build_workers(self.config, self._on_detected, self.counters, self.clock)
         self.state_dir.mkdir(parents=True, exist_ok=True)

@@ -22,12 +22,12 @@ import zenoh
 from pydantic import BaseModel, ValidationError
 
 from daemon.bus import (
-    DEFAULT_ENDPOINT,
     NO_CALIBRATION_YET,
     BusError,
     alive_key,
     calibration_key,
     client_config,
+    connect_endpoints,
     health_key,
     open_session,
     split_replies,
@@ -109,8 +109,9 @@ def fetch_status(
     zenoh_config: Path | None = None,
 ) -> StatusReport:
     """Query `rsu/{rsu or *}/camera/{camera or *}/calibration[/status]`, `rsu/{rsu or *}/health` and the
-    liveliness tokens `rsu/{rsu or *}/alive` through `connect` (default tcp/127.0.0.1:7447); `zenoh_config`
-    is a Zenoh JSON5 base config (TLS certificates for a secure site).
+    liveliness tokens `rsu/{rsu or *}/alive` through `connect`; `zenoh_config` is a Zenoh JSON5 base config
+    (TLS certificates for a secure site) whose own endpoints are used when `connect` is empty (without a
+    file: tcp/127.0.0.1:7447). The report names the endpoints used.
 
     Raises InputError for a malformed --rsu/--camera and BusError when no session can be opened.
     """
@@ -118,9 +119,10 @@ def fetch_status(
     camera_part = _check_identifier("--camera", camera)
     if not timeout_s > 0.0:
         raise InputError("--timeout-s", f"{timeout_s} must be positive")
-    endpoints = tuple(connect) or (() if zenoh_config is not None else (DEFAULT_ENDPOINT,))
-    where = endpoints or (f"the endpoints of {zenoh_config}",)
-    session = open_session(client_config(endpoints, config_file=zenoh_config), where)
+    config = client_config(connect, config_file=zenoh_config)
+    # Without --connect, the endpoints are those the --zenoh-config file gives (or loopback without one).
+    endpoints = tuple(connect) or tuple(connect_endpoints(config))
+    session = open_session(config, endpoints or (f"no endpoints in {zenoh_config}",))
     try:
         # All gets in flight at once: the read takes one timeout at worst, not four.
         pending_statuses = start_query(session, status_key(rsu_part, camera_part), timeout_s)
@@ -335,7 +337,8 @@ def report_json(report: StatusReport) -> str:
 def status_main(args: argparse.Namespace) -> int:
     """`rsucal status`: print the table (or --json); 0 when a health answered, 1 when nothing did.
 
-    args: connect (list of endpoints, empty: tcp/127.0.0.1:7447), rsu, camera, timeout_s, json.
+    args: connect (list of endpoints, empty: the --zenoh-config file's, else tcp/127.0.0.1:7447), rsu,
+    camera, timeout_s, json.
     """
     connect = [str(endpoint) for endpoint in (args.connect or [])]
     try:

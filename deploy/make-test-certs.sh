@@ -6,9 +6,10 @@
 # OUT_DIR gets ca.pem (the root every node trusts) and, per identity, NAME.pem + NAME.key (PKCS#8, mode 600):
 #   rsucal-daemon     the daemon: the only identity that may publish/serve calibrations (subject "daemon")
 #   rsucal-router     the Zenoh router of deploy/compose.yaml (server name "router")
-#   vehicle-4242      a calibration vehicle: allowed to publish on v2x/** (ACL subject "vehicles")
+#   vehicle-4242      calibration vehicle 4242: may publish only v2x/cam/4242 (ACL subject "vehicle/4242")
+#   detector-sil-west the detector of RSU sil-west: may publish only its cameras' detections and images
 #   rsucal-operator   an operator's client: may query status/calibration and trigger jobs
-#   untrusted-client  signed by the same CA but in no ACL list: may only query (used by the tests)
+#   untrusted-client  signed by the same CA but in no ACL list: may only read (used by the tests)
 # The certificate's common name (CN) is the identity the access control matches. Server certificates carry
 # SANs localhost and 127.0.0.1 (plus "router" for the router) because Zenoh checks the name it connects to;
 # EXTRA_SAN adds more to rsucal-daemon and rsucal-router, e.g. DNS:rsu-042.example.net or IP:10.0.0.5.
@@ -16,7 +17,7 @@
 set -euo pipefail
 
 if [ $# -lt 1 ] || [ "${1:-}" = "-h" ] || [ "${1:-}" = "--help" ]; then
-  sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'
+  sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'
   exit 2
 fi
 out=$1
@@ -63,10 +64,11 @@ EXT
 issue rsucal-daemon "DNS:rsucal-daemon,DNS:localhost,IP:127.0.0.1$extra_sans"
 issue rsucal-router "DNS:router,DNS:rsucal-router,DNS:localhost,IP:127.0.0.1$extra_sans"
 issue vehicle-4242 "DNS:vehicle-4242"
+issue detector-sil-west "DNS:detector-sil-west"
 issue rsucal-operator "DNS:rsucal-operator"
 issue untrusted-client "DNS:untrusted-client"
 
 chmod 644 "$out"/*.pem
 chmod 600 "$out"/*.key
-echo "make-test-certs: wrote $out/ca.pem and rsucal-daemon, rsucal-router, vehicle-4242, rsucal-operator," \
-  "untrusted-client (.pem + .key), valid $days days"
+echo "make-test-certs: wrote $out/ca.pem and rsucal-daemon, rsucal-router, vehicle-4242, detector-sil-west," \
+  "rsucal-operator, untrusted-client (.pem + .key), valid $days days"

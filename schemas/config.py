@@ -8,7 +8,7 @@ Durations are seconds (`_s`), sizes bytes (`_bytes`); names follow DESIGN.md.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
@@ -24,6 +24,16 @@ from schemas.common import (
 
 GIB = 1024**3
 MIB = 1024**2
+
+CommonName = Annotated[
+    str,
+    Field(
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9_.@\-]+$",
+        description="a certificate's common name (CN), its identity in Zenoh's access control",
+    ),
+]
 
 
 class ZenohConfig(StrictModel):
@@ -44,6 +54,11 @@ class ZenohConfig(StrictModel):
     config_file: Path | None = Field(
         default=None,
         description="a Zenoh JSON5 config (TLS, access control) as the base; the fields above override it",
+    )
+    access_control_file: Path | None = Field(
+        default=None,
+        description="the enforcing router's Zenoh config (secure-router.json5), whose access rules the "
+        "daemon checks at start when it is a mutual-TLS client",
     )
 
     @model_validator(mode="after")
@@ -114,6 +129,13 @@ class CameraConfig(StrictModel):
     detector: DetectorConfig | None = Field(
         default=None, description="run this ONNX detector on the camera's images (no bus detections needed)"
     )
+    detector_cert_common_names: list[CommonName] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=16,
+        description="certificates that alone may publish this camera's detections and images under access "
+        "control; None: the RSU's detector_cert_common_names",
+    )
 
     @model_validator(mode="after")
     def _coverage(self) -> CameraConfig:
@@ -133,6 +155,19 @@ class CalibrationVehicle(StrictModel):
         le=10_000_000_000,
         description="vehicle clock minus camera clock, ns, when known",
     )
+    cert_common_names: list[CommonName] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=16,
+        description="certificates that alone may publish v2x/cam/{station_id} under access control; "
+        "None: vehicle-{station_id}",
+    )
+
+    def common_names(self) -> tuple[str, ...]:
+        """The certificate common names that may speak for this station (default vehicle-{station_id})."""
+        if self.cert_common_names is not None:
+            return tuple(self.cert_common_names)
+        return (f"vehicle-{self.station_id}",)
 
 
 class TriggerConfig(StrictModel):
@@ -263,6 +298,13 @@ class DaemonConfig(StrictModel):
     change: ChangeConfig = Field(default_factory=ChangeConfig)
     jobs: JobsConfig = Field(default_factory=JobsConfig)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    detector_cert_common_names: list[CommonName] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=16,
+        description="certificates that alone may publish detections and images of every camera without "
+        "its own list, under access control; None: detector-{rsu_id}",
+    )
 
     @model_validator(mode="after")
     def _unique_and_consistent(self) -> DaemonConfig:
@@ -284,6 +326,16 @@ class DaemonConfig(StrictModel):
             if camera.camera_id == camera_id:
                 return camera
         raise KeyError(f"camera_id {camera_id!r} is not configured")
+
+    def detector_common_names(self, camera_id: str) -> tuple[str, ...]:
+        """The certificate common names that may publish this camera's detections and images: the camera's
+        own list, else the RSU's, else detector-{rsu_id}. KeyError names an unknown camera."""
+        own = self.camera(camera_id).detector_cert_common_names
+        if own is not None:
+            return tuple(own)
+        if self.detector_cert_common_names is not None:
+            return tuple(self.detector_cert_common_names)
+        return (f"detector-{self.rsu_id}",)
 
     def vehicle(self, station_id: int) -> CalibrationVehicle | None:
         """The calibration vehicle with this station id, or None for any other station."""

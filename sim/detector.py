@@ -100,6 +100,11 @@ def project_boxes(
                 px[:, :, 1].max(axis=1),
             ]
         )
+    return _clipped(raw, projectable, lens)
+
+
+def _clipped(raw: Boxes, projectable: Mask, lens: Lens) -> ProjectedBoxes:
+    """Raw boxes (P, 4) clipped to the image, with the share of each raw box inside it."""
     clipped = np.column_stack(
         [
             np.clip(raw[:, 0], 0, lens.width),
@@ -299,19 +304,7 @@ def _raw_boxes(
         projected = project_boxes(points, R_cam_from_local, t_cam_from_local, lens)
         raw[rows] = projected.raw
         projectable[rows] = projected.projectable
-    clipped = np.column_stack(
-        [
-            np.clip(raw[:, 0], 0, lens.width),
-            np.clip(raw[:, 1], 0, lens.height),
-            np.clip(raw[:, 2], 0, lens.width),
-            np.clip(raw[:, 3], 0, lens.height),
-        ]
-    )
-    area = (raw[:, 2] - raw[:, 0]) * (raw[:, 3] - raw[:, 1])
-    inside_area = (clipped[:, 2] - clipped[:, 0]) * (clipped[:, 3] - clipped[:, 1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inside = np.where(projectable & (area > 0), inside_area / area, 0.0)
-    return ProjectedBoxes(raw, clipped, projectable, np.nan_to_num(inside, nan=0.0))
+    return _clipped(raw, projectable, lens)
 
 
 def _hull(points: FloatArray) -> FloatArray:

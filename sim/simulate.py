@@ -14,6 +14,7 @@ of its own, so the ideal world's numbers never move.
 from __future__ import annotations
 
 import math
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -317,10 +318,12 @@ def resolve_config(preset: str | ScenarioConfig) -> ScenarioConfig:
     return PRESETS[preset]
 
 
-def _real_rng(seed: int, stream: int) -> np.random.Generator:
+def _real_rng(seed: int, scene: str, stream: int) -> np.random.Generator:
     """A generator for what the real world adds, independent of the ideal world's streams (so the ideal
-    world's draws, and its numbers, never move)."""
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(1000 + stream,)))
+    world's numbers never move) and of the scene's name (so one seed does not draw the same vehicle and
+    latencies in every preset)."""
+    entropy = [seed, zlib.crc32(scene.encode())]
+    return np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=(1000 + stream,)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -511,7 +514,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
     ground = GroundSurface.from_spec(world_ground(config), network)
     occluders = build_occluders(config.occluders, ground)
     world = WorldGeometry(lane_polylines(network, ground), occluders, ground)
-    calib_shape, profile = _calibration_body(config, _real_rng(seed, 0))
+    calib_shape, profile = _calibration_body(config, _real_rng(seed, config.name, 0))
     traffic: TrafficResult = simulate_traffic(
         network,
         config.drive,
@@ -522,7 +525,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         rng["traffic"],
     )
     vehicles = [traffic.calibration, *traffic.others]
-    bodies = _traffic_bodies(vehicles, calib_shape, config.ideal, _real_rng(seed, 1))
+    bodies = _traffic_bodies(vehicles, calib_shape, config.ideal, _real_rng(seed, config.name, 1))
     # Camera clock at t = 0: the preset's start plus a seeded offset (< 3 h, ms resolution).
     start_ns = config.start_ns + int(rng["clock"].integers(0, 3 * 3600 * 1000)) * 1_000_000
 
@@ -557,7 +560,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
             geo,
             config,
             start_ns,
-            _real_rng(seed, 2),
+            _real_rng(seed, config.name, 2),
         )
     else:
         v2x = _v2x_messages(
@@ -575,7 +578,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
     truths: dict[str, GroundTruth] = {}
     for index, (camera, camera_rng) in enumerate(zip(cameras, camera_rngs, strict=True)):
         times = _frame_times(traffic.end_s, detector.fps, detector.frame_jitter_s, rng["frames"])
-        real_rng = _real_rng(seed, 100 + index)
+        real_rng = _real_rng(seed, config.name, 100 + index)
         stamps, latency_ns = _camera_stamps(times, start_ns, clock, real_rng)
         lens = Lens.from_intrinsics(camera.intrinsics)
         real = None if config.ideal else RealDetector.draw(detector, real_rng)

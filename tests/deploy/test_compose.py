@@ -74,6 +74,11 @@ def test_secure_override_mounts_what_its_configs_read() -> None:
     assert Path(_binds(secure["router"])[router_config]).name == "secure-router.json5"
     for service in ("router", "rsucal"):
         assert _binds(secure[service])["/etc/rsucal/tls"] == "./tls"
+    # The daemon checks the very file the router runs (zenoh.access_control_file, deploy/README.md).
+    assert (
+        _binds(secure["rsucal"])["/etc/rsucal/zenoh/secure-router.json5"]
+        == _binds(secure["router"])[router_config]
+    )
     # The files the secure configs name are those make-test-certs.sh writes into ./tls.
     script = (DEPLOY / "make-test-certs.sh").read_text()
     made = {"ca", *re.findall(r"^issue (\S+) ", script, flags=re.MULTILINE)}

@@ -2,11 +2,13 @@
 
 A Daemon runs with `zenoh.config_file` = the deployed secure peer config (only the certificate paths point at
 certificates made in the test by deploy/make-test-certs.sh) and, as deploy/README.md documents, its `listen`
-in the RSU config: a TLS endpoint on a free loopback port. Its state directory is pre-seeded with an accepted
-current result (the simulator's true pose of a sil-west camera), so it answers a calibration as soon as it is
-on the bus. Every other node is a real Zenoh session in client mode, with a copy of secure-client.json5
-holding its own certificate: the operator, the calibration vehicle (vehicle-4242) and an intruder with a
-valid certificate of the CA but no rights (untrusted-client).
+in the RSU config: a TLS endpoint on a free loopback port. Its RSU is deploy/rsu.example.yaml's (sil-west),
+whose cameras and vehicle the deployed rules name, so the daemon's start-up check of them passes. Its state
+directory is pre-seeded with an accepted current result (the simulator's true pose of a sil-west camera), so
+it answers a calibration as soon as it is on the bus. Every other node is a real Zenoh session in client mode,
+with a copy of secure-client.json5 holding its own certificate: the operator, the calibration vehicle
+(vehicle-4242), the cameras' detector (detector-sil-west) and an intruder with a valid certificate of the CA
+but no rights (untrusted-client). One test runs the router topology of compose.secure.yaml instead.
 
 "Never arrives" is proved without sleeping, from the order of messages on one link: a sender's put and its
 following query travel in order, and the daemon hands an admitted put to its subscriber callback (which
@@ -31,23 +33,35 @@ from helpers import free_port, wait_until
 from daemon import cli
 from daemon.bus import (
     NO_CALIBRATION_YET,
+    alive_key,
     calibration_key,
     health_key,
     query_replies,
+    trigger_key,
 )
 from daemon.demo import demo_config
-from daemon.ingest import UNKNOWN_KEY_REJECTED, V2X_ACCEPTED, V2X_RECEIVED
+from daemon.ingest import (
+    DETECTIONS_ACCEPTED,
+    DETECTIONS_RECEIVED,
+    UNKNOWN_KEY_REJECTED,
+    V2X_ACCEPTED,
+    V2X_OTHER_STATION,
+    V2X_RECEIVED,
+)
 from daemon.main import Daemon
-from daemon.recording import v2x_key
+from daemon.recording import detections_key, list_recordings, read_recording, v2x_key
 from daemon.state import StateStore
 from daemon.status import fetch_status, status_main
 from pipeline.metrics import result_from_ground_truth
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
+from schemas.messages import DetectionFrame
 from schemas.results import CalibrationResult
 from sim.simulate import simulate
 
 ZENOH_DIR = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
+RSU = "sil-west"  # deploy/rsu.example.yaml's, with the cameras of the simulator's sil-west preset
+OTHER_STATION = 777  # a station no certificate may speak for
 ANSWERED_S = 5.0  # an allowed query is answered within this (loopback; generous for loaded CI)
 REFUSED_S = 0.5  # a query nobody can answer: the getter waits this long for nothing
 COUNTED_S = 5.0  # an admitted V2X message is counted by the ingest thread within this
@@ -96,6 +110,7 @@ class Site:
     current_json: Path  # cameras/{cam}/current.json
     current_bytes: bytes  # its bytes as seeded
     drive: Iterator[bytes]  # the calibration vehicle's V2X positions of the simulation, restamped to now
+    frames: Iterator[DetectionFrame]  # the seeded camera's detections of the simulation, restamped too
 
     @property
     def rsu(self) -> str:
@@ -124,6 +139,22 @@ class Site:
     def position(self) -> bytes:
         """The vehicle's next position (each a new stamp, so the daemon accepts it, no duplicate)."""
         return next(self.drive)
+
+    def frame(self) -> DetectionFrame:
+        """The camera's next detection frame (a new stamp each)."""
+        return next(self.frames)
+
+    def recorded(self) -> tuple[set[int], dict[int, set[int]]]:
+        """Stamps in the daemon's recordings so far: the seeded camera's detections, and V2X per station.
+        The recorder flushes every storage.flush_interval_s; a file in writing is read to its last chunk."""
+        frames: set[int] = set()
+        positions: dict[int, set[int]] = {}
+        for recording in list_recordings(self.daemon.recordings_dir, self.rsu):
+            content = read_recording(recording.path, rsu_id=self.rsu)
+            frames.update(frame.stamp_ns for frame in content.detections.get(self.camera, []))
+            for message in content.v2x:
+                positions.setdefault(message.station_id, set()).add(message.stamp_ns)
+        return frames, positions
 
 
 @dataclass
@@ -161,7 +192,8 @@ def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site
     sim = simulate("sil-west", 0, ideal=True)
     camera_id = sim.cameras[0].camera_id
     state_dir = tmp / "state"
-    result = result_from_ground_truth(sim.ground_truth[camera_id], sim.rsu_id)
+    # The RSU of deploy/rsu.example.yaml, whose cameras and vehicle the deployed access rules name.
+    result = result_from_ground_truth(sim.ground_truth[camera_id], RSU)
     StateStore(state_dir).save_result(result, current=True)
     current_json = state_dir / "cameras" / camera_id / "current.json"
     # The daemon's Zenoh file: the deployed secure.json5, only its certificate paths moved.
@@ -170,13 +202,18 @@ def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site
     # rsu.yaml as deploy/README.md section 5 writes it: config_file plus a TLS listener (no mode/connect).
     site_config = demo_config(sim, state_dir, 0).model_dump(mode="json", exclude={"zenoh"})
     config = DaemonConfig.model_validate(
-        {**site_config, "zenoh": {"config_file": str(zenoh_file), "listen": [endpoint]}}
+        {**site_config, "rsu_id": RSU, "zenoh": {"config_file": str(zenoh_file), "listen": [endpoint]}}
     )
     shift_ns = time.time_ns() - sim.v2x[0].stamp_ns
     drive = (
         m.model_copy(update={"stamp_ns": m.stamp_ns + shift_ns}).model_dump_json().encode("utf-8")
         for m in sim.v2x
         if m.station_id == sim.station_id
+    )
+    # The camera's detector output, each frame with a stamp of its own (recordings are checked by stamp).
+    frames = (
+        frame.model_copy(update={"stamp_ns": frame.stamp_ns + shift_ns})
+        for frame in sim.detections[camera_id]
     )
     daemon = Daemon(config)
     try:
@@ -191,6 +228,7 @@ def site(certs: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Site
             current_json=current_json,
             current_bytes=current_json.read_bytes(),
             drive=drive,
+            frames=frames,
         )
     finally:
         daemon.stop()
@@ -266,14 +304,17 @@ def test_operator_reads_the_calibration_and_status(
 
 
 def test_nodes_without_a_valid_certificate_cannot_connect(
-    site: Site, sessions: Sessions, rogue_certs: Path
+    site: Site, sessions: Sessions, rogue_certs: Path, expired_certs: Path, self_signed_certs: Path
 ) -> None:
     # A client fails at open: TLS without a certificate of its own, a certificate of another CA claiming
-    # the vehicle's or the operator's name, plain tcp to the TLS port.
+    # the vehicle's or the operator's name, the vehicle's name on a certificate of our CA that has expired
+    # or on a self-signed one, plain tcp to the TLS port.
     for identity, certs, protocol in (
         (None, None, "tls"),
         ("vehicle-4242", rogue_certs, "tls"),
         ("rsucal-operator", rogue_certs, "tls"),
+        ("vehicle-4242", expired_certs, "tls"),
+        ("vehicle-4242", self_signed_certs, "tls"),
         (None, None, "tcp"),
     ):
         with pytest.raises(zenoh.ZError):
@@ -388,3 +429,207 @@ def test_rsucal_status_cli_with_the_secure_client_config(
     out = capsys.readouterr().out
     assert f"via {site.endpoint}" in out
     assert site.camera in out and "calibrated" in out
+
+
+# ------------------------------------------------------------------------------- identities bound to keys
+
+
+def _payload(frame: DetectionFrame) -> bytes:
+    return frame.model_dump_json().encode("utf-8")
+
+
+def _put_frame_counted(site: Site, detector: zenoh.Session) -> int:
+    """The detector puts the camera's next frame; returns its stamp once the daemon has counted it."""
+    before = site.counters()[DETECTIONS_RECEIVED]
+    frame = site.frame()
+    detector.put(detections_key(site.rsu, site.camera), _payload(frame))
+    wait_until(lambda: site.counters()[DETECTIONS_RECEIVED] > before, timeout_s=COUNTED_S)
+    return frame.stamp_ns
+
+
+def _put_position_counted(site: Site, vehicle: zenoh.Session) -> int:
+    """The vehicle puts its next position; returns its stamp once the daemon has counted it."""
+    before = site.counters()[V2X_RECEIVED]
+    payload = site.position()
+    vehicle.put(v2x_key(site.station), payload)
+    wait_until(lambda: site.counters()[V2X_RECEIVED] > before, timeout_s=COUNTED_S)
+    return int(json.loads(payload)["stamp_ns"])
+
+
+def test_only_the_cameras_detector_feeds_its_detections(site: Site, sessions: Sessions) -> None:
+    """Issue 14, gap 1: a valid certificate of the CA (untrusted-client) published detections that were
+    accepted and recorded. Now only the camera's detector identity (detector-sil-west) may; every other
+    identity's frames, on the exact key or a wildcard, are never counted, recorded or used (jobs read
+    their windows from the recordings; the camera's `detections` counter is what its status shows)."""
+    detector = sessions.open("detector-sil-west")
+    key = detections_key(site.rsu, site.camera)
+    legit = [_put_frame_counted(site, detector)]
+    counters = site.counters()
+    camera_detections = site.daemon.status(site.camera).counters["detections"]
+
+    fakes: list[int] = []
+    # The daemon's own identity too: its rule names its own keys, not `rsu/**`.
+    for identity in ("untrusted-client", "vehicle-4242", "rsucal-operator", "rsucal-daemon"):
+        other = sessions.open(identity)
+        for target in (key, "rsu/*/camera/*/detections", "rsu/**", "**"):
+            fake = site.frame()
+            fakes.append(fake.stamp_ns)
+            other.put(target, _payload(fake))
+        _round_trip(site, other)  # every fake put that passed is in the inbox (module docstring)
+    legit.append(_put_frame_counted(site, detector))
+
+    after = site.counters()
+    assert after[DETECTIONS_RECEIVED] == counters[DETECTIONS_RECEIVED] + 1
+    assert after[DETECTIONS_ACCEPTED] == counters[DETECTIONS_ACCEPTED] + 1
+    assert after[UNKNOWN_KEY_REJECTED] == counters[UNKNOWN_KEY_REJECTED]
+    assert site.daemon.status(site.camera).counters["detections"] == camera_detections + 1
+    # Recorded in order of ingest: once the detector's frames are in the file, a leaked fake would be too.
+    wait_until(lambda: set(legit) <= site.recorded()[0], timeout_s=COUNTED_S)
+    assert site.recorded()[0].isdisjoint(fakes)
+
+
+def test_a_vehicle_speaks_only_for_its_own_station(site: Site, sessions: Sessions) -> None:
+    """Issue 14, gap 2: with the certificate of vehicle 4242, positions put on v2x/cam/777 were accepted
+    (`v2x.other_station`). Now each vehicle certificate may put only its own station's key: vehicle 4242's
+    positions for another station, and the detector's for vehicle 4242, are never counted or recorded,
+    while vehicle 4242's own still are."""
+    vehicle = sessions.open("vehicle-4242")
+    detector = sessions.open("detector-sil-west")
+    legit = [_put_position_counted(site, vehicle)]
+    counters = site.counters()
+
+    spoofed: list[int] = []
+    for sender, station, targets in (
+        (vehicle, OTHER_STATION, (v2x_key(OTHER_STATION), "v2x/cam/*", "v2x/**", "**")),
+        (detector, site.station, (v2x_key(site.station), "v2x/**")),
+    ):
+        for target in targets:
+            spoof = json.loads(site.position())
+            spoof["station_id"] = station
+            spoof["lat"] += 0.0005  # ~55 m north: a position the real vehicle never had
+            spoofed.append(spoof["stamp_ns"])
+            sender.put(target, json.dumps(spoof).encode("utf-8"))
+        _round_trip(site, sender)
+    legit.append(_put_position_counted(site, vehicle))
+
+    after = site.counters()
+    assert after[V2X_RECEIVED] == counters[V2X_RECEIVED] + 1
+    assert after[V2X_ACCEPTED] == counters[V2X_ACCEPTED] + 1  # the vehicle's own: used for traversals
+    assert after[V2X_OTHER_STATION] == counters[V2X_OTHER_STATION]
+    assert after[UNKNOWN_KEY_REJECTED] == counters[UNKNOWN_KEY_REJECTED]
+    wait_until(lambda: set(legit) <= site.recorded()[1].get(site.station, set()), timeout_s=COUNTED_S)
+    positions = site.recorded()[1]
+    assert OTHER_STATION not in positions
+    assert positions[site.station].isdisjoint(spoofed)
+
+
+def test_rsucal_status_names_the_endpoints_of_its_zenoh_config(
+    site: Site, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without --connect, status connects where the --zenoh-config file says and names those endpoints
+    (it printed "via :" and "endpoints": [] before)."""
+    config_file = site.client_file("rsucal-operator")  # connect/endpoints: [the daemon's endpoint]
+    argv = ["status", "--zenoh-config", str(config_file), "--timeout", "5"]
+    capsys.readouterr()
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert f"via {site.endpoint}:" in out
+    assert cli.main([*argv, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["endpoints"] == [site.endpoint]
+
+
+def test_behind_the_secure_router_only_the_detector_feeds_the_daemon(certs: Path, tmp_path: Path) -> None:
+    """compose.secure.yaml's topology: a router on secure-router.json5 enforces the rules, the daemon is its
+    mutual-TLS client (secure-client.json5) and checks at start the router's file, named in
+    zenoh.access_control_file. An intruder's detections through the router never reach the daemon."""
+    sim = simulate("sil-west", 0, ideal=True)
+    camera = sim.cameras[0].camera_id
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    router_settings = {**_tls(certs, "rsucal-router"), "listen/endpoints": [endpoint]}
+    router_file = _write(_deployed("secure-router.json5", router_settings), tmp_path / "router.json5")
+    client_settings = {**_tls(certs, "rsucal-daemon"), "connect/endpoints": [endpoint]}
+    client_file = _write(_deployed("secure-client.json5", client_settings), tmp_path / "daemon.json5")
+    site_config = demo_config(sim, tmp_path / "state", 0).model_dump(mode="json", exclude={"zenoh"})
+    zenoh_fields = {
+        "mode": "client",
+        "config_file": str(client_file),
+        "access_control_file": str(router_file),
+    }
+    config = DaemonConfig.model_validate({**site_config, "rsu_id": RSU, "zenoh": zenoh_fields})
+    frames = iter(sim.detections[camera])
+    key = detections_key(RSU, camera)
+    opened: list[zenoh.Session] = []
+    router = zenoh.open(zenoh.Config.from_file(str(router_file)))
+    daemon = Daemon(config)
+    fakes: list[int] = []
+    try:
+        daemon.start()
+
+        def client(identity: str) -> zenoh.Session:
+            settings = {**_tls(certs, identity), "connect/endpoints": [endpoint]}
+            opened.append(zenoh.open(_deployed("secure-client.json5", settings)))
+            return opened[-1]
+
+        detector, intruder = client("detector-sil-west"), client("untrusted-client")
+
+        def detector_counted() -> bool:
+            # Again until the daemon's subscription, declared through the router, has reached the detector.
+            detector.put(key, _payload(next(frames)))
+            return daemon.health().counters[DETECTIONS_RECEIVED] > 0
+
+        wait_until(detector_counted, timeout_s=COUNTED_S)
+        for target in (key, "rsu/*/camera/*/detections", "rsu/**", "**"):
+            fake = next(frames)
+            fakes.append(fake.stamp_ns)
+            intruder.put(target, _payload(fake))
+        # Through the router too, the intruder's puts and its query reach the daemon in order.
+        assert len(_replies(intruder, health_key(RSU), ANSWERED_S)) == 1
+        last = next(frames)
+        before = daemon.health().counters[DETECTIONS_RECEIVED]
+        detector.put(key, _payload(last))
+        wait_until(lambda: daemon.health().counters[DETECTIONS_RECEIVED] > before, timeout_s=COUNTED_S)
+    finally:
+        for session in reversed(opened):
+            session.close()  # type: ignore[no-untyped-call]
+        daemon.stop()  # finishes the recording
+        router.close()  # type: ignore[no-untyped-call]
+    [recording] = list_recordings(daemon.recordings_dir, RSU)
+    recorded = {frame.stamp_ns for frame in read_recording(recording.path, rsu_id=RSU).detections[camera]}
+    # Recorded in order of arrival: the detector's last frame is there, so a leaked fake would be too. And
+    # every frame the daemon counted is one of the detector's.
+    assert last.stamp_ns in recorded and recorded.isdisjoint(fakes)
+    counters = daemon.health().counters
+    assert counters[DETECTIONS_RECEIVED] == counters[DETECTIONS_ACCEPTED] == len(recorded)
+
+
+def test_only_an_operator_reaches_the_trigger(site: Site, sessions: Sessions) -> None:
+    """The trigger queryable answers every exact-key query (a job id, a reason, or an error for an unknown
+    camera), so an unanswered query never reached the daemon. The unknown camera starts no job."""
+    unknown = trigger_key(site.rsu, "no-such-camera")
+    for identity in ("untrusted-client", "vehicle-4242", "detector-sil-west"):
+        other = sessions.open(identity)
+        for key in (trigger_key(site.rsu, site.camera), unknown):
+            replies = query_replies(other, key, REFUSED_S)
+            assert replies.ok == [] and replies.errors == []
+    operator = sessions.open("rsucal-operator")
+    replies = query_replies(operator, unknown, ANSWERED_S)
+    assert replies.ok == [] and len(replies.errors) == 1 and "no such camera" in replies.errors[0]
+
+
+def test_unauthorised_identity_cannot_fake_a_liveliness_token(site: Site, sessions: Sessions) -> None:
+    intruder = sessions.open("untrusted-client")
+    tokens = [
+        intruder.liveliness().declare_token(key) for key in (alive_key("fake-rsu"), alive_key(site.rsu))
+    ]
+    try:
+        _round_trip(site, intruder)  # its declarations reached the daemon (and were refused there)
+        operator = sessions.open("rsucal-operator")
+        alive = [
+            str(reply.ok.key_expr)
+            for reply in operator.liveliness().get("rsu/*/alive", timeout=ANSWERED_S)
+            if reply.ok is not None
+        ]
+        assert alive == [alive_key(site.rsu)]  # the daemon's own token only
+    finally:
+        for token in tokens:
+            token.undeclare()  # type: ignore[no-untyped-call]

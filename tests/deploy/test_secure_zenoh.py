@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,14 +26,19 @@ import pytest
 import zenoh
 from helpers import free_port, wait_until
 
+from daemon.access import AccessRules
+
 ROOT = Path(__file__).resolve().parents[2]
 ZENOH_DIR = ROOT / "deploy" / "zenoh"
 
-RSU = "rsu-test"
-CALIBRATION = f"rsu/{RSU}/camera/c1/calibration"
+RSU = "sil-west"  # the site of deploy/rsu.example.yaml, whose cameras and vehicle the deployed rules name
+CAMERA = f"rsu/{RSU}/camera/west-junction"
+CALIBRATION = f"{CAMERA}/calibration"
 STATUS = f"{CALIBRATION}/status"
 TRIGGER = f"{CALIBRATION}/trigger"
+DETECTIONS = f"{CAMERA}/detections"
 V2X = "v2x/cam/4242"  # the calibration vehicle of deploy/rsu.example.yaml
+INPUTS = "rsu/*/camera/*/*"  # detections and images, as the daemon-side subscriber sees them
 REAL = b'{"result_id": "real"}'
 FAKE = b'{"result_id": "fake"}'
 ANSWERED_S = 5.0  # an allowed query is answered within this (loopback; generous for loaded CI)
@@ -124,24 +130,26 @@ def _round_trip(session: zenoh.Session) -> None:
     assert _replies(session, STATUS, ANSWERED_S), "the status query must be answered"
 
 
-@pytest.fixture(params=["secure-peer", "secure-router"])
-def network(request: pytest.FixtureRequest, certs: Path) -> Iterator[Network]:
+@contextmanager
+def _open_network(topology: str, certs: Path, acl: dict[str, Any] | None = None) -> Iterator[Network]:
+    """The secure bus of `topology` with the deployed rules, or `acl` as the enforcing node's rules."""
     port = free_port()
     endpoint = f"tls/127.0.0.1:{port}"
     opened: list[zenoh.Session] = []
     undeclare: list[Any] = []
+    rules = {} if acl is None else {"access_control": acl}
     try:
-        if request.param == "secure-peer":
-            settings = {"listen/endpoints": [endpoint], **_tls(certs, "rsucal-daemon")}
+        if topology == "secure-peer":
+            settings = {"listen/endpoints": [endpoint], **_tls(certs, "rsucal-daemon"), **rules}
             daemon = zenoh.open(_config("secure.json5", settings))
             opened.append(daemon)
         else:
-            settings = {"listen/endpoints": [endpoint], **_tls(certs, "rsucal-router")}
+            settings = {"listen/endpoints": [endpoint], **_tls(certs, "rsucal-router"), **rules}
             opened.append(zenoh.open(_config("secure-router.json5", settings)))
             settings = {"connect/endpoints": [endpoint], **_tls(certs, "rsucal-daemon")}
             daemon = zenoh.open(_config("secure-client.json5", settings))
             opened.append(daemon)
-        received: dict[str, list[bytes]] = {CALIBRATION: [], "v2x/**": []}
+        received: dict[str, list[bytes]] = {CALIBRATION: [], "v2x/**": [], INPUTS: []}
         triggers: list[str] = []
         undeclare.extend(_record(daemon, key, payloads) for key, payloads in received.items())
         undeclare.append(_serve(daemon, CALIBRATION, lambda q: REAL))
@@ -152,13 +160,18 @@ def network(request: pytest.FixtureRequest, certs: Path) -> Iterator[Network]:
             return b'{"accepted": true}'
 
         undeclare.append(_serve(daemon, TRIGGER, trigger))
-        net = Network(certs, endpoint, daemon, received, triggers, opened)
-        yield net
+        yield Network(certs, endpoint, daemon, received, triggers, opened)
     finally:
         for entity in undeclare:
             entity.undeclare()
         for session in reversed(opened):
             session.close()
+
+
+@pytest.fixture(params=["secure-peer", "secure-router"])
+def network(request: pytest.FixtureRequest, certs: Path) -> Iterator[Network]:
+    with _open_network(request.param, certs) as net:
+        yield net
 
 
 def test_authenticated_clients_query_the_calibration(network: Network) -> None:
@@ -252,3 +265,121 @@ def test_wildcard_query_reaches_the_trigger_queryable(network: Network) -> None:
     passes. The daemon must therefore start a job only for a query on the exact trigger key."""
     _replies(network.client("untrusted-client"), "rsu/**", ANSWERED_S)
     assert network.triggers == ["rsu/**"]
+
+
+def test_only_the_cameras_detector_publishes_its_detections(network: Network) -> None:
+    """Issue 14: any certificate of the CA could publish detections. Now only the detector identity the
+    rules name for that camera may, on exactly its keys; others are refused on exact keys and wildcards."""
+    others = [
+        network.client(identity) for identity in ("untrusted-client", "vehicle-4242", "rsucal-operator")
+    ]
+    for other in others:
+        for key in (DETECTIONS, f"{CAMERA}/image", "rsu/*/camera/*/detections", "rsu/**", "**"):
+            other.put(key, FAKE)
+        _round_trip(other)
+    detector = network.client("detector-sil-west")
+    _put_until_received(detector, DETECTIONS, REAL, network.received[INPUTS])
+    _put_until_received(detector, f"{CAMERA}/image", b"image", network.received[INPUTS])
+    assert FAKE not in network.received[INPUTS]
+    # The detector feeds cameras, nothing else: not a vehicle's positions, not a calibration, not another
+    # RSU's camera.
+    for key in (V2X, CALIBRATION, "rsu/other-rsu/camera/c1/detections", "rsu/sil-west/camera/*/detections"):
+        detector.put(key, FAKE)
+    _round_trip(detector)
+    _put_until_received(detector, DETECTIONS, b"last", network.received[INPUTS])
+    assert FAKE not in network.received[INPUTS] + network.received["v2x/**"] + network.received[CALIBRATION]
+
+
+def test_a_vehicle_publishes_only_its_own_station(network: Network) -> None:
+    """Issue 14: the certificate of vehicle 4242 could put positions on v2x/cam/777. Now it may put only
+    v2x/cam/4242."""
+    vehicle = network.client("vehicle-4242")
+    for key in ("v2x/cam/777", "v2x/cam/*", "v2x/**", f"{V2X}/extra"):
+        vehicle.put(key, FAKE)
+    _round_trip(vehicle)
+    _put_until_received(vehicle, V2X, REAL, network.received["v2x/**"])
+    assert FAKE not in network.received["v2x/**"]
+
+
+# Keys each sender puts in the cross-check below: the vehicle's and another station's, both cameras' inputs.
+CHECKED_KEYS = (
+    V2X,
+    "v2x/cam/777",
+    DETECTIONS,
+    f"{CAMERA}/image",
+    f"rsu/{RSU}/camera/west-arm/detections",
+    f"rsu/{RSU}/camera/west-arm/image",
+    "rsu/other-rsu/camera/c1/detections",
+)
+SENDERS = ("vehicle-4242", "detector-sil-west", "rsucal-operator", "untrusted-client")
+
+
+def _old_rules() -> dict[str, Any]:
+    """The rules before issue 14, rebuilt on the deployed ones: any certificate may publish detections,
+    listed vehicles all of v2x/**, the daemon all of rsu/**; plus a deny that only one subject carries."""
+    acl: dict[str, Any] = json.loads(_config("secure.json5", {}).get_json("access_control"))
+    put = {"permission": "allow", "flows": ["ingress"], "messages": ["put", "delete"]}
+    acl["rules"] += [
+        {**put, "id": "publish-detections", "key_exprs": ["rsu/*/camera/*/detections"]},
+        {**put, "id": "publish-v2x", "key_exprs": ["v2x/**"]},
+        {**put, "permission": "deny", "id": "no-arm", "key_exprs": [f"rsu/{RSU}/camera/west-arm/**"]},
+    ]
+    for policy in acl["policies"]:
+        if policy["id"] == "everyone":
+            policy["rules"].append("publish-detections")
+        if policy["id"] == "vehicle/4242":
+            policy["rules"].append("publish-v2x")
+        if policy["id"] == "operators":
+            policy["rules"].append("no-arm")  # the operator's deny does not cancel "everyone"'s allow
+        if policy["id"] == "detectors/sil-west/west-junction":
+            policy["rules"].append("no-arm")  # ...but a subject's own deny cancels its own allows
+    return acl
+
+
+@pytest.mark.parametrize("rules", ["deployed", "old"])
+@pytest.mark.parametrize("topology", ["secure-peer", "secure-router"])
+def test_the_daemons_model_of_the_rules_is_what_zenoh_enforces(
+    topology: str, rules: str, certs: Path
+) -> None:
+    """daemon.access evaluates the rules without Zenoh (the daemon's start-up check relies on it): for every
+    sender and key, what it predicts is exactly what the secure peer or router lets through, for the
+    deployed rules and for looser ones that mix allows and denies across subjects."""
+    acl = _old_rules() if rules == "old" else None
+    model = AccessRules.parse(
+        acl or json.loads(_config("secure.json5", {}).get_json("access_control")), ["tls"]
+    )
+    predicted = {
+        (identity, key)
+        for identity in SENDERS
+        for key in CHECKED_KEYS
+        if model.allowing(identity, "tls", "put", key)
+    }
+    with _open_network(topology, certs, acl) as network:
+        arrived: list[bytes] = []
+        subscriber = _record(network.daemon, "**", arrived)
+        try:
+            _round_trip(network.daemon)  # our subscription is known to the bus before anyone puts
+            for identity in SENDERS:
+                sender = network.client(identity)
+                for key in CHECKED_KEYS:
+                    sender.put(key, f"{identity} {key}".encode())
+                _round_trip(sender)  # whatever of its puts passed has arrived (module docstring)
+        finally:
+            subscriber.undeclare()
+    delivered = {tuple(payload.decode().split(" ")) for payload in arrived if payload.count(b" ") == 1}
+    assert delivered == predicted
+    if rules == "deployed":
+        arm = f"rsu/{RSU}/camera/west-arm/detections"
+        assert predicted == {
+            ("vehicle-4242", V2X),
+            ("detector-sil-west", DETECTIONS),
+            ("detector-sil-west", f"{CAMERA}/image"),
+            ("detector-sil-west", arm),
+            ("detector-sil-west", f"rsu/{RSU}/camera/west-arm/image"),
+        }
+    else:  # the gaps of issue 14 are open again, and the model sees them
+        assert ("untrusted-client", DETECTIONS) in predicted and ("vehicle-4242", "v2x/cam/777") in predicted
+        # Zenoh merges the two detector subjects (same CN, same link) into one: its deny on the west arm
+        # cancels its own allow of the arm's images, while "everyone"'s allow of detections still stands.
+        assert ("detector-sil-west", f"rsu/{RSU}/camera/west-arm/image") not in predicted
+        assert ("detector-sil-west", f"rsu/{RSU}/camera/west-arm/detections") in predicted

@@ -14,6 +14,8 @@ import pytest
 import zenoh
 from helpers import free_port, wait_until
 
+from daemon.access import site_access_control
+from pipeline.loaders import load_daemon_config
 from schemas.config import ZenohConfig
 
 ZENOH_DIR = Path(__file__).resolve().parents[2] / "deploy" / "zenoh"
@@ -78,6 +80,16 @@ def test_secure_peer_and_router_enforce_the_same_access_control() -> None:
     assert acl == _get(router, "access_control")
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
     assert _get(peer, "scouting/gossip/enabled") is False and _get(router, "scouting/gossip/enabled") is False
+
+
+@pytest.mark.parametrize("name", ["secure.json5", "secure-router.json5"])
+def test_secure_rules_are_what_the_generator_writes_for_the_example_site(name: str) -> None:
+    """The deployed per-vehicle and per-camera rules are `rsucal access-control`'s for deploy/rsu.example.yaml
+    (the daemon's start-up check of them is tested in tests/daemon/test_access.py)."""
+    example = load_daemon_config(ZENOH_DIR.parent / "rsu.example.yaml")
+    acl = _get(_load(name), "access_control")
+    regenerated = _load(name, {"access_control": site_access_control(example, acl)})
+    assert _get(regenerated, "access_control") == acl
 
 
 def test_plain_router_client_and_peer_carry_a_message() -> None:
