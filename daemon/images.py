@@ -22,6 +22,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import DecodeError
 
+from daemon.recording import image_key
 from pipeline.errors import InputError
 from schemas.common import STAMP_NS_MAX, STAMP_NS_MIN
 
@@ -47,10 +48,6 @@ class DecodedImage:
     frame_id: str
     format: str
     image: ImageBgr
-
-
-def image_key(rsu_id: str, camera_id: str) -> str:
-    return f"rsu/{rsu_id}/camera/{camera_id}/image"
 
 
 def encode_compressed_image(

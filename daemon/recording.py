@@ -110,6 +110,11 @@ def detections_key(rsu_id: str, camera_id: str) -> str:
     return f"rsu/{rsu_id}/camera/{camera_id}/detections"
 
 
+def image_key(rsu_id: str, camera_id: str) -> str:
+    """Bus key (and MCAP topic) of a camera's images (foxglove.CompressedImage), for its detector."""
+    return f"rsu/{rsu_id}/camera/{camera_id}/image"
+
+
 def v2x_key(station_id: int) -> str:
     """Bus key (and MCAP topic) of a station's V2X positions."""
     return f"v2x/cam/{station_id}"
