@@ -250,8 +250,16 @@ class Bus:
     subscriber callbacks never wait for either. Every query is finalised as soon as it is answered.
     """
 
-    def __init__(self, config: DaemonConfig, on_inbound: OnInbound, handlers: Handlers, clock: Clock) -> None:
+    def __init__(
+        self,
+        config: DaemonConfig,
+        on_inbound: OnInbound,
+        handlers: Handlers,
+        clock: Clock,
+        on_image: OnInbound | None = None,
+    ) -> None:
         self._config = config
+        self._on_image = on_image  # images of `rsu/{rsu}/camera/*/image`, only when a camera has a detector
         self._rsu_id = config.rsu_id
         self._camera_ids = tuple(camera.camera_id for camera in config.cameras)
         self._on_inbound = on_inbound
@@ -261,6 +269,7 @@ class Bus:
         self._state: Literal["new", "open", "closed"] = "new"
         self._session: zenoh.Session | None = None
         self._subscribers: list[zenoh.Subscriber[Any]] = []
+        self._detection_publishers: dict[str, zenoh.Publisher] = {}
         self._queryables: list[zenoh.Queryable[Any]] = []
         self._threads: list[threading.Thread] = []
         self._token: zenoh.LivelinessToken | None = None
@@ -285,6 +294,10 @@ class Bus:
             # Input keys are those of the recordings (daemon.recording), with wildcards.
             for key in (detections_key(self._rsu_id, "*"), "v2x/cam/*"):
                 self._subscribers.append(session.declare_subscriber(key, on_sample))
+            if self._on_image is not None:
+                image_key = f"rsu/{self._rsu_id}/camera/*/image"
+                on_image = self._sample_callback(self._on_image)
+                self._subscribers.append(session.declare_subscriber(image_key, on_image))
             answers: dict[Kind, tuple[str, Callable[[zenoh.Query], None]]] = {
                 "calibration": (calibration_key(self._rsu_id, "*"), self._answer_calibration),
                 "status": (status_key(self._rsu_id, "*"), self._answer_status),
@@ -312,6 +325,29 @@ class Bus:
             ", ".join(self._camera_ids),
             ", ".join(effective_endpoints(config)) or "(none)",
         )
+
+    def publish_detections(self, camera_id: str, payload: bytes) -> None:
+        """Put a DetectionFrame the daemon's own detector made on `.../detections`, for other sessions only
+        (Locality.REMOTE: our own subscriber must not ingest it a second time). Called from the camera's
+        detector thread; a slow remote loses frames (congestion DROP) rather than holding the detector."""
+        session = self._session
+        if session is None or self._state != "open":
+            raise BusError(f"bus of rsu {self._rsu_id} is not open")
+        key = detections_key(self._rsu_id, camera_id)
+        try:
+            with self._lock:
+                publisher = self._detection_publishers.get(camera_id)
+                if publisher is None:
+                    publisher = session.declare_publisher(
+                        key,
+                        encoding=JSON,
+                        congestion_control=zenoh.CongestionControl.DROP,
+                        allowed_destination=zenoh.Locality.REMOTE,
+                    )
+                    self._detection_publishers[camera_id] = publisher
+            publisher.put(payload)
+        except zenoh.ZError as err:
+            raise BusError(f"put {key}: {zenoh_message(err)}") from err
 
     def publish_calibration(self, camera_id: str, payload: bytes) -> None:
         """Put a validated CalibrationResult (JSON) on `rsu/{rsu}/camera/{camera_id}/calibration`."""
@@ -347,10 +383,16 @@ class Bus:
                 return
             self._state = "closed"
         token, self._token = self._token, None
-        entities: list[zenoh.LivelinessToken | zenoh.Subscriber[Any] | zenoh.Queryable[Any]] = [
+        with self._lock:
+            publishers = list(self._detection_publishers.values())
+            self._detection_publishers = {}
+        entities: list[
+            zenoh.LivelinessToken | zenoh.Subscriber[Any] | zenoh.Queryable[Any] | zenoh.Publisher
+        ] = [
             *([token] if token is not None else []),
             *self._subscribers,
             *self._queryables,
+            *publishers,
         ]
         self._subscribers, self._queryables = [], []
         for entity in entities:
@@ -381,10 +423,10 @@ class Bus:
 
     # ------------------------------------------------------------------------------------------ inbound
 
-    def _sample_callback(self) -> Callable[[zenoh.Sample], None]:
+    def _sample_callback(self, target: OnInbound | None = None) -> Callable[[zenoh.Sample], None]:
         # Runs on Zenoh's callback thread for every sample: the least work possible (local names, no
         # attribute lookups on self), so ingest, not the bus, limits throughput.
-        on_inbound = self._on_inbound
+        on_inbound = self._on_inbound if target is None else target
         now_ns = self._clock.now_ns
 
         def on_sample(sample: zenoh.Sample) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from daemon.bridge_cli import add_bridge_parser
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig
@@ -168,7 +169,15 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
         path = getattr(zenoh_config, name)
         if path is not None and not path.is_absolute():
             zenoh_config = zenoh_config.model_copy(update={name: (base / path).resolve()})
-    return config.model_copy(update={"storage": storage, "zenoh": zenoh_config})
+    cameras = [
+        camera.model_copy(
+            update={"detector": camera.detector.model_copy(update={"model": (base / camera.detector.model)})}
+        )
+        if camera.detector is not None and not camera.detector.model.is_absolute()
+        else camera
+        for camera in config.cameras
+    ]
+    return config.model_copy(update={"storage": storage, "zenoh": zenoh_config, "cameras": cameras})
 
 
 def _cmd_access_control(args: argparse.Namespace) -> int:
@@ -360,6 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep the daemon's recordings, results and reports in DIR (new or empty), plus simulation.mcap",
     )
     demo.set_defaults(func=_cmd_demo)
+
+    add_bridge_parser(sub)
     return parser
 
 

@@ -55,6 +55,7 @@ from pipeline.frames import UtmFrame, poses_from_v2x
 from pipeline.validation import ValidationGates
 from schemas.common import CameraIntrinsics, VehicleProfile, describe_validation_error
 from schemas.config import ChangeConfig, GatesConfig, JobsConfig
+from schemas.messages import apply_labels
 from schemas.results import CalibrationResult, ChangeInfo, Provenance
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,7 @@ class JobSpec:
     created_at_ns: int  # the result's created_at_ns (our clock, when the job was started)
     config_hash: str  # of the daemon's config, stored in the result's provenance
     timeout_s: float = DEFAULT_TIMEOUT_S  # jobs.timeout_s: wall time from the job's start in its worker
+    labels: dict[int, str] | None = None  # the camera's label map (its detector's class ids -> names)
     # Where the job writes its HTML report (the camera's history/, beside the result), or None for none.
     report_dir: str | None = None
 
@@ -324,7 +326,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
             camera_id=spec.camera_id,
             intrinsics=spec.intrinsics,
             vehicle=spec.vehicle,
-            detections=window.detections,
+            detections=apply_labels(window.detections, spec.labels),
             poses=vehicle_poses,
             crs=spec.crs,
             time_offset_ns=spec.time_offset_ns,

@@ -32,8 +32,9 @@ import zenoh
 
 from daemon import __version__
 from daemon.access import check_access_rules
-from daemon.bus import Bus, Handlers, session_config
+from daemon.bus import Bus, BusError, Handlers, session_config
 from daemon.clock import Clock, SystemClock
+from daemon.detector import DetectorWorker, ImageRouter, build_workers
 from daemon.foxglove import frame_transform
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
 from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
@@ -156,6 +157,7 @@ class Daemon:
 
         self._runner: JobRunner | None = None
         self._bus: Bus | None = None
+        self._detectors: dict[str, DetectorWorker] = {}
         self._threads: list[threading.Thread] = []
         self.started_at_ns = self.clock.now_ns()
         self._next_prune = 0.0
@@ -168,6 +170,8 @@ class Daemon:
         AccessControlError when a secure deployment's access rules do not match the config)."""
         if check_access_rules(self.config):
             log.info("access rules match the config: each camera and vehicle may publish only its own keys")
+        # Detector models load first: a bad one is a configuration error, before anything starts.
+        self._detectors = build_workers(self.config, self._on_detected, self.counters, self.clock)
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self.recordings_dir.mkdir(parents=True, exist_ok=True)
         self._recover()
@@ -182,13 +186,19 @@ class Daemon:
         ]
         for thread in self._threads:
             thread.start()
+        for worker in self._detectors.values():
+            worker.start()
+        on_image = None
+        if self._detectors:
+            image_rejects = RejectLog(self.counters, self.config.ingest.warn_interval_s, self.clock)
+            on_image = ImageRouter(self.config.rsu_id, self._detectors, self.counters, image_rejects)
         handlers = Handlers(
             calibration=self._answer_calibration,
             status=self._answer_status,
             trigger=self._answer_trigger,
             health=self._answer_health,
         )
-        self._bus = Bus(self.config, self._on_inbound, handlers, self.clock)
+        self._bus = Bus(self.config, self._on_inbound, handlers, self.clock, on_image=on_image)
         try:
             self._bus.open()
         except BaseException:
@@ -209,6 +219,9 @@ class Daemon:
         """Stop input, drain, finish the MCAP file, persist, close the bus and the workers. Idempotent."""
         if self._bus is not None:
             self._bus.close()  # no new input, no more queries
+        # The detectors' frames go through the inbox: stop them before ingest drains it.
+        for worker in self._detectors.values():
+            worker.stop(timeout_s=DRAIN_BUDGET_S)
         self._stop.set()
         for thread in self._threads:
             thread.join(timeout=DRAIN_BUDGET_S + 0.5)
@@ -230,6 +243,10 @@ class Daemon:
     @property
     def failure(self) -> str | None:
         """Why one of the daemon's own threads died (the process must then exit non-zero), or None."""
+        if self._failure is None:
+            for camera_id, worker in self._detectors.items():
+                if worker.failure is not None:
+                    return f"detector of camera {camera_id}: {worker.failure}"
         return self._failure
 
     def _guarded(self, loop: Callable[[], None]) -> None:
@@ -338,6 +355,19 @@ class Daemon:
             self._inbox_items += 1
             self._inbox_bytes += size
         self._inbox.put(Inbound(key, payload, received_ns))
+
+    def _on_detected(self, key: str, payload: bytes, received_ns: int) -> None:
+        """A detector thread's DetectionFrame: into the inbox like a bus message, and on the bus for other
+        sessions (a live viewer, another consumer); a failed put is counted, the frame is kept anyway."""
+        self._on_inbound(key, payload, received_ns)
+        bus = self._bus
+        if bus is None:
+            return
+        try:
+            bus.publish_detections(key.split("/")[3], payload)
+        except BusError as err:
+            self.counters.add("images.publish_failed")
+            log.debug("publishing a detected frame: %s", err)
 
     # ------------------------------------------------------------------------------------------ ingest thread
 
@@ -479,6 +509,7 @@ class Daemon:
             created_at_ns=now_ns,
             config_hash=self._config_hash,
             timeout_s=self.config.jobs.timeout_s,
+            labels=None if camera.labels is None else dict(camera.labels),
             report_dir=str(self.store.history_dir(camera_id)),
         )
         self.trackers[camera_id].mark_used(window)

@@ -114,6 +114,11 @@ def detections_key(rsu_id: str, camera_id: str) -> str:
     return f"rsu/{rsu_id}/camera/{camera_id}/detections"
 
 
+def image_key(rsu_id: str, camera_id: str) -> str:
+    """Bus key (and MCAP topic) of a camera's images (foxglove.CompressedImage), for its detector."""
+    return f"rsu/{rsu_id}/camera/{camera_id}/image"
+
+
 def v2x_key(station_id: int) -> str:
     """Bus key (and MCAP topic) of a station's V2X positions."""
     return f"v2x/cam/{station_id}"
@@ -1026,17 +1031,12 @@ def read_recording(
     )
 
 
-def image_topic(rsu_id: str, camera_id: str) -> str:
-    """Topic of a camera's images (foxglove.CompressedImage, JPEG or PNG) when a recording holds them."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/image"
-
-
 def read_images(
     files: Sequence[Path], rsu_id: str, camera_id: str, stamps: Collection[int], tolerance_ns: int = 1_000_000
 ) -> dict[int, bytes]:
     """The recorded image (compressed bytes) nearest each of `stamps` within `tolerance_ns`, by stamp.
 
-    Reads foxglove.CompressedImage messages on image_topic(rsu_id, camera_id); stamps without an image
+    Reads foxglove.CompressedImage messages on image_key(rsu_id, camera_id); stamps without an image
     are left out (most recordings hold none). Damaged files and undecodable messages are skipped.
     """
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -1045,7 +1045,7 @@ def read_images(
     wanted = sorted(stamps)
     if not wanted:
         return {}
-    topic = image_topic(rsu_id, camera_id)
+    topic = image_key(rsu_id, camera_id)
     found: dict[int, tuple[int, bytes]] = {}  # wanted stamp -> (|dt|, image)
     low, high = wanted[0] - tolerance_ns, wanted[-1] + tolerance_ns
     for path in files:

@@ -8,7 +8,17 @@ from typing import Annotated, NotRequired
 from pydantic import ConfigDict, Field, TypeAdapter
 from typing_extensions import TypedDict
 
-from schemas.common import Box, Finite, Identifier, PixelCoord, StampNs, StrictModel
+from schemas.common import (
+    Box,
+    ClassId,
+    ClassName,
+    Finite,
+    Identifier,
+    PixelCoord,
+    StampNs,
+    StrictModel,
+    class_name,
+)
 
 MAX_BOXES_PER_FRAME = 2000
 
@@ -24,14 +34,15 @@ class DetectionFrame(StrictModel):
 # The bus path (daemon ingest, ~20,000 messages/s on one core) only needs to know that a DetectionFrame is
 # valid, plus its camera_id and stamp_ns; building 30 frozen Box models per frame is most of its cost. These
 # mirror DetectionFrame and Box field for field (tests/schemas/test_models.py checks that both accept exactly
-# the same payloads); only Box's x1 < x2, y1 < y2 check is done in check_detection_frame below.
+# the same payloads); only Box's x1 < x2, y1 < y2 check is done in check_detection_frame below. `cls` is a
+# plain union here (validated in Rust), the model's tagged one only improves its error messages.
 class _BoxFields(TypedDict):
     __pydantic_config__ = ConfigDict(extra="forbid", allow_inf_nan=False)  # type: ignore[misc]
     x1: PixelCoord
     y1: PixelCoord
     x2: PixelCoord
     y2: PixelCoord
-    cls: NotRequired[Annotated[int, Field(ge=0, le=1000)]]
+    cls: NotRequired[ClassId | ClassName]
     score: NotRequired[Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]]
 
 
@@ -69,6 +80,24 @@ def check_detection_frame_boxes(raw: bytes | str) -> tuple[str, int, Sequence[Ma
     frame = DetectionFrame.model_validate_json(raw, strict=True)
     # only reached if the two ever disagree
     return frame.camera_id, frame.stamp_ns, [box.model_dump() for box in frame.boxes]
+
+
+def apply_labels(frames: Sequence[DetectionFrame], labels: Mapping[int, str] | None) -> list[DetectionFrame]:
+    """Frames with every integer class the camera's label map names replaced by that name (lower case);
+    other boxes and frames are returned as they are (the same objects)."""
+    if not labels:
+        return list(frames)
+    named = []
+    for frame in frames:
+        if not any(isinstance(box.cls, int) and box.cls in labels for box in frame.boxes):
+            named.append(frame)
+            continue
+        boxes = [
+            box.model_copy(update={"cls": class_name(box.cls, labels)}) if isinstance(box.cls, int) else box
+            for box in frame.boxes
+        ]
+        named.append(frame.model_copy(update={"boxes": boxes}))
+    return named
 
 
 class V2xAccuracies(StrictModel):

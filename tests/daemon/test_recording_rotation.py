@@ -609,14 +609,14 @@ def test_read_images_finds_the_recorded_image_nearest_each_stamp(tmp_path: Path)
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
     from daemon import foxglove
-    from daemon.recording import image_topic, read_images
+    from daemon.recording import image_key, read_images
 
     path = tmp_path / "images.mcap"
     with RecordingWriter(path, chunk_size=4096) as writer:
         for i in range(10):
             image = CompressedImage(format="jpeg", data=bytes([i]) * 100, frame_id="cam")
             image.timestamp.FromNanoseconds(T0 + i * 100_000_000)
-            topic = image_topic(RSU, "north" if i != 5 else "south")
+            topic = image_key(RSU, "north" if i != 5 else "south")
             writer.write_raw(
                 topic,
                 foxglove.protobuf_schema("CompressedImage"),
@@ -625,7 +625,7 @@ def test_read_images_finds_the_recorded_image_nearest_each_stamp(tmp_path: Path)
                 T0 + i * 100_000_000,
             )
         writer.write_raw(
-            image_topic(RSU, "north"), foxglove.protobuf_schema("CompressedImage"), b"\xff\xff", T0, T0 + 3
+            image_key(RSU, "north"), foxglove.protobuf_schema("CompressedImage"), b"\xff\xff", T0, T0 + 3
         )
     wanted = [T0 + 200_000_000 + 400_000, T0 + 500_000_000, T0 + 700_000_000 + 2_000_000, T0]
     found = read_images([path], RSU, "north", wanted)
