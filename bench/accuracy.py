@@ -635,8 +635,8 @@ def _task_weight(preset: str) -> float:
     return len(config.cameras) * (config.traffic.count + 50) * (config.duration_s or 300.0)
 
 
-def _run_all(names: Sequence[str], seeds: int, jobs: int, ideal: bool) -> list[Run]:
-    tasks = sorted(((p, s, ideal) for p in names for s in range(seeds)), key=lambda t: -_task_weight(t[0]))
+def _run_all(names: Sequence[str], seeds: range, jobs: int, ideal: bool) -> list[Run]:
+    tasks = sorted(((p, s, ideal) for p in names for s in seeds), key=lambda t: -_task_weight(t[0]))
     runs: list[Run] = []
     started = time.perf_counter()
 
@@ -668,20 +668,26 @@ def _run_all(names: Sequence[str], seeds: int, jobs: int, ideal: bool) -> list[R
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.accuracy", description=__doc__.split("\n")[0])
-    parser.add_argument("--seeds", type=int, default=10, help="seeds 0..N-1 (default 10)")
+    parser.add_argument("--seeds", type=int, default=10, help="how many seeds (default 10)")
+    parser.add_argument("--first-seed", type=int, default=0, help="seeds FIRST..FIRST+N-1 (default 0)")
     parser.add_argument("--presets", default="", help="comma-separated presets (default: all but long)")
     parser.add_argument("--ideal", action="store_true", help="the first simulator's world (see above)")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--json", type=Path, help="also write every run and the summary here")
-    parser.add_argument("--load", type=Path, help="report the runs of an earlier --json file, run nothing")
+    parser.add_argument(
+        "--load", type=Path, nargs="+", help="report the runs of earlier --json files together, run nothing"
+    )
     args = parser.parse_args(argv)
 
     started = time.perf_counter()
     if args.load:
-        saved = json.loads(args.load.read_text())
-        runs: list[Run] = saved["runs"]
+        saved = [json.loads(path.read_text()) for path in args.load]
+        runs: list[Run] = [run for part in saved for run in part["runs"]]
         names = list(dict.fromkeys(r["preset"] for r in runs))
-        header = saved.get("header", f"runs loaded from {args.load}")
+        header = "\n".join(
+            part.get("header", f"runs loaded from {path}")
+            for part, path in zip(saved, args.load, strict=True)
+        )
     else:
         # Before numpy is imported here or in any worker (spawned workers inherit the environment).
         limit_threads(1)
@@ -695,11 +701,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.error(f"unknown preset(s) {', '.join(unknown)}; choose from {', '.join(PRESETS)}")
         # Now: the workers import the code as it is when they start.
         code = tree_state(["pipeline", "schemas", "sim"])
-        runs = _run_all(names, args.seeds, args.jobs, args.ideal)
+        seeds = range(args.first_seed, args.first_seed + args.seeds)
+        runs = _run_all(names, seeds, args.jobs, args.ideal)
         world = "IDEAL world (cuboid boxes, no latency, IMU poses)" if args.ideal else "real world"
         header = (
-            f"rsucal accuracy benchmark, {world}: {len(names)} presets x seeds 0..{args.seeds - 1}, every "
-            f"camera, known vehicle clock offset; {len(runs)} runs in "
+            f"rsucal accuracy benchmark, {world}: {len(names)} presets x seeds {seeds.start}.."
+            f"{seeds.stop - 1}, every camera, known vehicle clock offset; {len(runs)} runs in "
             f"{(time.perf_counter() - started) / 60:.1f} min "
             f"with {args.jobs} worker(s); code: {code}"
         )

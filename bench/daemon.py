@@ -1,7 +1,7 @@
 """Daemon load benchmark (issue 4): ingest throughput with MCAP logging, memory over a simulated day, and the
 time from the end of the quiet period to the calibration on the bus. Not part of the test suite.
 
-    python -m bench.daemon [--part sustained|ceiling|rss|latency|profile|all] [--json out.json]
+    python -m bench.daemon [--part sustained|ceiling|rss|latency|detector|profile|all] [--json out.json]
 
 The mix: 4 cameras at 10 fps with 30 boxes per frame (the sil-west simulator's detector boxes, each frame
 filled up with boxes of the camera's later frames, so coordinates and JSON sizes are a detector's: ~4 kB)
@@ -29,6 +29,13 @@ daemon (its inbox), never dropped by the publisher.
              jobs.track_workers 2); per job: from the end of the quiet period (the tracker's last leave on our
              clock + quiet_period_s, in wall time) to the job's start and to its CalibrationResult arriving
              at a subscriber in another session.
+  detector   the image path (not in `all`): a Daemon in this process with --detector-cameras cameras, each
+             running an ONNX detector (1 onnxruntime thread, queue of 2), fed 1920 x 1080 JPEGs
+             (foxglove.CompressedImage) at --detector-fps per camera over Zenoh for --seconds; detector frames
+             per second per camera, images dropped, and the per-image cost of each stage in one thread. The
+             model is the test suite's cell detector (tests/daemon/onnx_models.py, YOLOv8 layout, 640 x 640)
+             behind a random-weight 3x3 convolution stack of 5.3 GFLOPs (YOLOv8n: 8.7): a network's arithmetic
+             without weights, since none may be downloaded. A real detector's speed scales with its FLOPs.
   profile    (not in `all`) where the ingest time goes at --profile-rate messages/s: cProfile of a Daemon's
              ingest thread, the bus callback's cost, and (when py-spy is installed) py-spy of `rsucal daemon`,
              all threads and only the one holding the GIL.
@@ -631,8 +638,13 @@ class DaemonProcess:
         return [line for line in lines if " WARNING " in line or " ERROR " in line or "Traceback" in line]
 
 
+# The received messages' channels; the Foxglove views beside them (storage.foxglove_views) are not counted.
+INPUT_SCHEMAS = frozenset({"rsucal.DetectionFrame", "rsucal.V2xPosition"})
+
+
 def mcap_summary(directory: Path) -> tuple[int, int, int]:
-    """(files, bytes, messages) of the MCAP files in `directory` (messages from each file's statistics)."""
+    """(files, bytes, messages received) of the MCAP files in `directory`, from each file's statistics:
+    messages on the raw DetectionFrame / V2xPosition channels only."""
     from mcap.reader import make_reader
 
     files = sorted(directory.glob("*.mcap"))
@@ -641,7 +653,11 @@ def mcap_summary(directory: Path) -> tuple[int, int, int]:
         with path.open("rb") as stream:
             summary = make_reader(stream).get_summary()
         if summary is not None and summary.statistics is not None:
-            messages += summary.statistics.message_count
+            counts = summary.statistics.channel_message_counts
+            for channel_id, channel in summary.channels.items():
+                schema = summary.schemas.get(channel.schema_id)
+                if schema is not None and schema.name in INPUT_SCHEMAS:
+                    messages += counts.get(channel_id, 0)
     return len(files), sum(p.stat().st_size for p in files), messages
 
 
@@ -1542,9 +1558,195 @@ def print_profile(r: dict[str, Any]) -> None:
             print_py_spy(r["py_spy"]["gil"], "the thread holding the GIL (--gil)")
 
 
+# --------------------------------------------------------------------------------------------- detector
+
+
+def _street_image(seed: int, width: int = 1920, height: int = 1080) -> Any:
+    """A synthetic 8-bit BGR street scene: grey road, sky gradient, coloured boxes, sensor noise (so the
+    JPEG is a camera's size, ~0.3-0.6 MB, not a flat picture's)."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    image = np.empty((height, width, 3), dtype=np.float32)
+    image[:] = np.linspace(200, 90, height, dtype=np.float32)[:, None, None]
+    image[height // 2 :] = 95.0
+    for _ in range(12):
+        x, y = int(rng.integers(0, width - 300)), int(rng.integers(height // 2, height - 150))
+        image[y : y + int(rng.integers(60, 150)), x : x + int(rng.integers(120, 300))] = rng.integers(
+            0, 256, 3
+        )
+    image += rng.normal(0.0, 6.0, image.shape)
+    return np.clip(image, 0, 255).astype(np.uint8)
+
+
+def run_detector(seconds: float, cameras: int, fps: float) -> dict[str, Any]:
+    import numpy as np
+    import zenoh
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    from daemon.bus import client_config, free_loopback_port
+    from daemon.detector import OnnxDetector, decode_output, letterbox, network_input, postprocess
+    from daemon.images import decode_compressed_image, encode_compressed_image, image_key
+    from daemon.main import Daemon
+    from schemas.config import DetectorConfig
+
+    # The test suite's model builder (it needs the `onnx` package of the [test] extra).
+    sys.path.insert(0, str(REPO_ROOT / "tests" / "daemon"))
+    import onnx
+    from onnx_models import add_backbone, build_model
+
+    with tempfile.TemporaryDirectory(prefix="rsucal-bench-detector-") as tmp:
+        model, gflops = add_backbone(build_model("yolov8", 640, 640))
+        model_path = Path(tmp) / "bench-detector.onnx"
+        onnx.save(model, str(model_path))
+        detector_config = DetectorConfig(model=model_path, layout="yolov8", threads=1, queue_images=2)
+        images = [_street_image(seed) for seed in range(8)]
+        payload_sizes = [len(encode_compressed_image(image, 10**18, "c")) for image in images]
+
+        # Per-image cost of each stage, one thread, no bus.
+        detector = OnnxDetector(detector_config, None, "bench")
+        session_run = detector._session.run  # the stage timing calls the model alone
+        stages: dict[str, list[float]] = {
+            "jpeg decode": [],
+            "letterbox + input": [],
+            "onnxruntime": [],
+            "decode + NMS": [],
+        }
+        for i in range(12):
+            payload = encode_compressed_image(images[i % len(images)], 10**18 + i, "c")
+            t0 = time.perf_counter()
+            decoded = decode_compressed_image(payload)
+            t1 = time.perf_counter()
+            canvas, placement = letterbox(decoded.image, 640, 640, centered=True)
+            tensor = network_input(canvas, "yolov8")
+            t2 = time.perf_counter()
+            (output,) = session_run(None, {"images": tensor})
+            t3 = time.perf_counter()
+            boxes, scores, classes = decode_output(output, "yolov8", 640, 640)
+            postprocess(boxes, scores, classes, placement, 1920, 1080, detector_config, None)
+            t4 = time.perf_counter()
+            if i >= 2:  # the first runs warm up onnxruntime's allocations
+                for name, value in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), strict=True):
+                    stages[name].append(value)
+
+        port = free_loopback_port()
+        endpoint = f"tcp/127.0.0.1:{port}"
+        config = site_config_for_detector(Path(tmp) / "state", port, cameras, detector_config)
+        daemon = Daemon(config)
+        daemon.start()
+        session = zenoh.open(client_config([endpoint]))
+        stop = threading.Event()
+        sent = [0] * cameras
+
+        def publish(index: int) -> None:
+            camera_id = config.cameras[index].camera_id
+            publisher = session.declare_publisher(
+                image_key(config.rsu_id, camera_id), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            encoded = [encode_compressed_image(image, 10**18, camera_id) for image in images]
+            start, period = time.monotonic(), 1.0 / fps
+            frame = 0
+            while not stop.is_set():
+                # Re-stamp the pre-encoded image: only the header changes, as for a real camera.
+                message = CompressedImage.FromString(encoded[frame % len(encoded)])
+                message.timestamp.FromNanoseconds(time.time_ns())
+                publisher.put(message.SerializeToString())
+                sent[index] += 1
+                frame += 1
+                delay = start + frame * period - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+            publisher.undeclare()
+
+        try:
+            threads = [threading.Thread(target=publish, args=(i,), daemon=True) for i in range(cameras)]
+            before = daemon.counters.snapshot()
+            usage_before = process_usage(os.getpid())
+            started = time.monotonic()
+            for thread in threads:
+                thread.start()
+            stop.wait(seconds)
+            stop.set()
+            for thread in threads:
+                thread.join(10)
+            elapsed = time.monotonic() - started
+            usage_after = process_usage(os.getpid())
+            after = daemon.counters.snapshot()
+        finally:
+            session.close()
+            daemon.stop()
+        per_camera = {}
+        for index, camera in enumerate(config.cameras):
+            name = camera.camera_id
+
+            def delta(counter: str, name: str = name) -> int:
+                return after.get(f"images.{name}.{counter}", 0) - before.get(f"images.{name}.{counter}", 0)
+
+            per_camera[name] = {
+                "sent": sent[index],
+                "received": delta("received"),
+                "detected": delta("detected"),
+                "dropped": delta("dropped"),
+                "frames_per_s": delta("detected") / elapsed,
+            }
+    cpu_s = usage_after.cpu_s - usage_before.cpu_s
+    return {
+        "model": f"cell detector + random 3x3 conv backbone, YOLOv8 layout, 640 x 640, {gflops:.1f} GFLOPs",
+        "cameras": cameras,
+        "fps_offered": fps,
+        "seconds": elapsed,
+        "jpeg_bytes_mean": float(np.mean(payload_sizes)),
+        "stage_ms_median": {name: 1000 * float(np.median(values)) for name, values in stages.items()},
+        "per_camera": per_camera,
+        "detections_accepted": after.get("detections.accepted", 0) - before.get("detections.accepted", 0),
+        "process_cpu_pct": 100.0 * cpu_s / elapsed,
+    }
+
+
+def site_config_for_detector(state_dir: Path, port: int, cameras: int, detector: Any) -> DaemonConfig:
+    from schemas.common import CameraIntrinsics, VehicleProfile
+    from schemas.config import CalibrationVehicle, CameraConfig, DaemonConfig, StorageConfig, ZenohConfig
+
+    intrinsics = CameraIntrinsics(width=1920, height=1080, fx=1800.0, fy=1800.0, cx=960.0, cy=540.0)
+    return DaemonConfig(
+        rsu_id="bench",
+        zenoh=ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]),
+        cameras=[
+            CameraConfig(camera_id=f"cam{i}", intrinsics=intrinsics, detector=detector)
+            for i in range(cameras)
+        ],
+        vehicles=[
+            CalibrationVehicle(
+                station_id=1,
+                profile=VehicleProfile(length=4.8, width=1.9, height=1.5, imu_offset=(1.5, 0.95, 0.3)),
+            )
+        ],
+        storage=StorageConfig(state_dir=state_dir),
+    )
+
+
+def print_detector(r: dict[str, Any]) -> None:
+    print(
+        f"\n== detector: {r['cameras']} camera(s), {r['fps_offered']:.0f} images/s offered each, "
+        f"{r['seconds']:.0f} s"
+    )
+    print(f"  model: {r['model']}; JPEG 1920 x 1080, mean {r['jpeg_bytes_mean'] / 1e6:.2f} MB")
+    stages = ", ".join(f"{name} {ms:.1f} ms" for name, ms in r["stage_ms_median"].items())
+    print(f"  per image, one thread (median): {stages}")
+    for name, c in r["per_camera"].items():
+        print(
+            f"  {name}: {c['frames_per_s']:.2f} detector frames/s; sent {c['sent']}, "
+            f"received {c['received']}, detected {c['detected']}, dropped {c['dropped']}"
+        )
+    print(
+        f"  DetectionFrames accepted by ingest: {r['detections_accepted']}; "
+        f"process CPU {r['process_cpu_pct']:.0f} % (of one core; publishers in this process included)"
+    )
+
+
 # ------------------------------------------------------------------------------------------------- main
 
-PARTS = ("sustained", "ceiling", "rss", "latency", "profile")
+PARTS = ("sustained", "ceiling", "rss", "latency", "detector", "profile")
 ALL_PARTS = ("sustained", "ceiling", "rss", "latency")
 
 
@@ -1552,7 +1754,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m bench.daemon", description=(__doc__ or "").split("\n")[0]
     )
-    parser.add_argument("--part", choices=[*PARTS, "all"], default="all", help="all = all but profile")
+    parser.add_argument(
+        "--part", choices=[*PARTS, "all"], default="all", help="all = all but detector and profile"
+    )
     parser.add_argument("--seconds", type=float, default=60.0, help="sustained: seconds of real-time input")
     parser.add_argument(
         "--rates",
@@ -1573,6 +1777,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--quiet-period-s", type=float, default=30.0, help="latency: trigger.quiet_period_s")
     parser.add_argument("--seed", type=int, default=0, help="latency: simulator seed")
     parser.add_argument("--profile-rate", type=float, default=15_000.0, help="profile: messages/s")
+    parser.add_argument("--detector-cameras", type=int, default=2, help="detector: cameras with a detector")
+    parser.add_argument("--detector-fps", type=float, default=10.0, help="detector: images/s per camera")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
     parts = ALL_PARTS if args.part == "all" else (args.part,)
@@ -1600,6 +1806,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif part == "latency":
             result = run_latency(args.latency_rate, args.quiet_period_s, args.seed)
             print_latency(result)
+        elif part == "detector":
+            result = run_detector(args.seconds, args.detector_cameras, args.detector_fps)
+            print_detector(result)
         else:
             result = run_profile(args.profile_rate, args.step_s)
             print_profile(result)

@@ -28,7 +28,7 @@ from typing import Any
 import zenoh
 
 from daemon.bus import BusError, session_config, zenoh_message
-from daemon.recording import detections_key, v2x_key
+from daemon.recording import detections_key, image_key, v2x_key
 from pipeline.errors import InputError
 from schemas.config import DaemonConfig
 
@@ -45,11 +45,6 @@ MAX_PROBLEMS = 12  # the start-up error names this many mismatches, then counts 
 
 class AccessControlError(InputError):
     """The access rules of a secure deployment do not bind the configured detectors and vehicles."""
-
-
-def image_key(rsu_id: str, camera_id: str) -> str:
-    """Bus key of a camera's images (published beside its detections when images come in)."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/image"
 
 
 def expected_publishers(config: DaemonConfig) -> dict[str, tuple[str, tuple[str, ...]]]:

@@ -23,6 +23,7 @@ from typing import Any, Literal
 import zenoh
 
 from daemon.clock import Clock
+from daemon.foxglove import FRAME_TRANSFORM, transform_key
 from daemon.recording import detections_key
 from pipeline.errors import RsucalError
 from schemas.config import DaemonConfig, ZenohConfig
@@ -31,6 +32,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 JSON = zenoh.Encoding.APPLICATION_JSON
+FRAME_TRANSFORM_ENCODING = zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(FRAME_TRANSFORM.name)
 # The text of the error reply to `.../calibration` before a camera has a validated result: fleet readers
 # (`rsucal status`) recognise it as "not calibrated yet" rather than a fault.
 NO_CALIBRATION_YET = "no validated calibration yet"
@@ -254,8 +256,16 @@ class Bus:
     subscriber callbacks never wait for either. Every query is finalised as soon as it is answered.
     """
 
-    def __init__(self, config: DaemonConfig, on_inbound: OnInbound, handlers: Handlers, clock: Clock) -> None:
+    def __init__(
+        self,
+        config: DaemonConfig,
+        on_inbound: OnInbound,
+        handlers: Handlers,
+        clock: Clock,
+        on_image: OnInbound | None = None,
+    ) -> None:
         self._config = config
+        self._on_image = on_image  # images of `rsu/{rsu}/camera/*/image`, only when a camera has a detector
         self._rsu_id = config.rsu_id
         self._camera_ids = tuple(camera.camera_id for camera in config.cameras)
         self._on_inbound = on_inbound
@@ -265,6 +275,7 @@ class Bus:
         self._state: Literal["new", "open", "closed"] = "new"
         self._session: zenoh.Session | None = None
         self._subscribers: list[zenoh.Subscriber[Any]] = []
+        self._detection_publishers: dict[str, zenoh.Publisher] = {}
         self._queryables: list[zenoh.Queryable[Any]] = []
         self._threads: list[threading.Thread] = []
         self._token: zenoh.LivelinessToken | None = None
@@ -289,6 +300,10 @@ class Bus:
             # Input keys are those of the recordings (daemon.recording), with wildcards.
             for key in (detections_key(self._rsu_id, "*"), "v2x/cam/*"):
                 self._subscribers.append(session.declare_subscriber(key, on_sample))
+            if self._on_image is not None:
+                image_key = f"rsu/{self._rsu_id}/camera/*/image"
+                on_image = self._sample_callback(self._on_image)
+                self._subscribers.append(session.declare_subscriber(image_key, on_image))
             answers: dict[Kind, tuple[str, Callable[[zenoh.Query], None]]] = {
                 "calibration": (calibration_key(self._rsu_id, "*"), self._answer_calibration),
                 "status": (status_key(self._rsu_id, "*"), self._answer_status),
@@ -317,6 +332,29 @@ class Bus:
             ", ".join(effective_endpoints(config)) or "(none)",
         )
 
+    def publish_detections(self, camera_id: str, payload: bytes) -> None:
+        """Put a DetectionFrame the daemon's own detector made on `.../detections`, for other sessions only
+        (Locality.REMOTE: our own subscriber must not ingest it a second time). Called from the camera's
+        detector thread; a slow remote loses frames (congestion DROP) rather than holding the detector."""
+        session = self._session
+        if session is None or self._state != "open":
+            raise BusError(f"bus of rsu {self._rsu_id} is not open")
+        key = detections_key(self._rsu_id, camera_id)
+        try:
+            with self._lock:
+                publisher = self._detection_publishers.get(camera_id)
+                if publisher is None:
+                    publisher = session.declare_publisher(
+                        key,
+                        encoding=JSON,
+                        congestion_control=zenoh.CongestionControl.DROP,
+                        allowed_destination=zenoh.Locality.REMOTE,
+                    )
+                    self._detection_publishers[camera_id] = publisher
+            publisher.put(payload)
+        except zenoh.ZError as err:
+            raise BusError(f"put {key}: {zenoh_message(err)}") from err
+
     def publish_calibration(self, camera_id: str, payload: bytes) -> None:
         """Put a validated CalibrationResult (JSON) on `rsu/{rsu}/camera/{camera_id}/calibration`."""
         if camera_id not in self._camera_ids:
@@ -330,6 +368,20 @@ class Bus:
         except zenoh.ZError as err:
             raise BusError(f"put {key}: {zenoh_message(err)}") from err
 
+    def publish_transform(self, camera_id: str, payload: bytes) -> None:
+        """Put an accepted result as foxglove.FrameTransform (protobuf) on `.../calibration/transform`, so a
+        live Foxglove session over Zenoh shows the camera (daemon.foxglove.frame_transform)."""
+        if camera_id not in self._camera_ids:
+            raise KeyError(f"camera_id {camera_id!r} is not configured")
+        session = self._session
+        if session is None or self._state != "open":
+            raise BusError(f"bus of rsu {self._rsu_id} is not open")
+        key = transform_key(self._rsu_id, camera_id)
+        try:
+            session.put(key, payload, encoding=FRAME_TRANSFORM_ENCODING)
+        except zenoh.ZError as err:
+            raise BusError(f"put {key}: {zenoh_message(err)}") from err
+
     def close(self) -> None:
         """Undeclare (ends the serving loops), join the threads, close the session. Idempotent."""
         with self._lock:
@@ -337,10 +389,16 @@ class Bus:
                 return
             self._state = "closed"
         token, self._token = self._token, None
-        entities: list[zenoh.LivelinessToken | zenoh.Subscriber[Any] | zenoh.Queryable[Any]] = [
+        with self._lock:
+            publishers = list(self._detection_publishers.values())
+            self._detection_publishers = {}
+        entities: list[
+            zenoh.LivelinessToken | zenoh.Subscriber[Any] | zenoh.Queryable[Any] | zenoh.Publisher
+        ] = [
             *([token] if token is not None else []),
             *self._subscribers,
             *self._queryables,
+            *publishers,
         ]
         self._subscribers, self._queryables = [], []
         for entity in entities:
@@ -371,10 +429,10 @@ class Bus:
 
     # ------------------------------------------------------------------------------------------ inbound
 
-    def _sample_callback(self) -> Callable[[zenoh.Sample], None]:
+    def _sample_callback(self, target: OnInbound | None = None) -> Callable[[zenoh.Sample], None]:
         # Runs on Zenoh's callback thread for every sample: the least work possible (local names, no
         # attribute lookups on self), so ingest, not the bus, limits throughput.
-        on_inbound = self._on_inbound
+        on_inbound = self._on_inbound if target is None else target
         now_ns = self._clock.now_ns
 
         def on_sample(sample: zenoh.Sample) -> None:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, NoReturn
 
 from pydantic import ValidationError
 
+from daemon.bridge_cli import add_bridge_parser
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig
@@ -267,6 +268,26 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK if outcome.result.verdict.is_accepted else EXIT_REFUSED
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    from daemon.report import run_report
+
+    written = run_report(
+        Path(args.result),
+        Path(args.vehicle),
+        Path(args.out),
+        mcap_path=Path(args.mcap) if args.mcap else None,
+        detections_path=Path(args.detections) if args.detections else None,
+        poses_path=Path(args.poses) if args.poses else None,
+        station_id=args.station_id,
+        time_offset_ns=args.time_offset_ns,
+        seed=args.seed,
+        workers=args.workers,
+    )
+    for path in written:
+        print(f"wrote {path}")
+    return EXIT_OK
+
+
 def _cmd_daemon(args: argparse.Namespace) -> int:
     from daemon.main import run_daemon
     from daemon.state import prepare_state_dir
@@ -291,7 +312,15 @@ def _resolve_relative_paths(config: DaemonConfig, base: Path) -> DaemonConfig:
         path = getattr(zenoh_config, name)
         if path is not None and not path.is_absolute():
             zenoh_config = zenoh_config.model_copy(update={name: (base / path).resolve()})
-    return config.model_copy(update={"storage": storage, "zenoh": zenoh_config})
+    cameras = [
+        camera.model_copy(
+            update={"detector": camera.detector.model_copy(update={"model": (base / camera.detector.model)})}
+        )
+        if camera.detector is not None and not camera.detector.model.is_absolute()
+        else camera
+        for camera in config.cameras
+    ]
+    return config.model_copy(update={"storage": storage, "zenoh": zenoh_config, "cameras": cameras})
 
 
 def _cmd_access_control(args: argparse.Namespace) -> int:
@@ -320,7 +349,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     _check_preset(args.preset, PRESETS)
     return run_demo(
-        preset=args.preset, seed=args.seed, rate=args.rate, timeout_s=args.timeout, ideal=args.ideal
+        preset=args.preset,
+        seed=args.seed,
+        rate=args.rate,
+        timeout_s=args.timeout,
+        ideal=args.ideal,
+        keep_dir=Path(args.keep) if args.keep else None,
     )
 
 
@@ -424,6 +458,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cal.set_defaults(func=_cmd_calibrate)
 
+    rep = sub.add_parser(
+        "report",
+        help="RESULT.json + its recording or YAML pair -> one self-contained HTML report and PNG figures",
+        description="Re-run the calibration on the result's data and draw it: the vehicle model over its "
+        "boxes, a map, delta_p against distance, residuals, hypothesis groups, uncertainty, the verdict.",
+    )
+    rep.add_argument("result", help="CalibrationResult JSON (rsucal calibrate --out, or a daemon's history/)")
+    rep.add_argument("--vehicle", required=True, help="vehicle.yaml: the calibration vehicle's box and IMU")
+    rep_source = rep.add_mutually_exclusive_group(required=True)
+    rep_source.add_argument("--mcap", help="the rsucal MCAP recording the result was made from")
+    rep_source.add_argument("--detections", help="toolbox detections.yaml (needs --poses)")
+    rep.add_argument("--poses", help="toolbox poses.yaml (with --detections)")
+    rep.add_argument("--station-id", type=int, help="MCAP: the calibration vehicle (default: the result's)")
+    rep.add_argument("--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns")
+    rep.add_argument(
+        "--seed", type=_SEED, default=0, help="RANSAC random seed of the re-run, >= 0 (default 0)"
+    )
+    rep.add_argument(
+        "--workers", type=_integer(1, 1024), default=None, help="processes for the per-track fits"
+    )
+    rep.add_argument("--out", required=True, help="directory for report.html and the PNGs")
+    rep.set_defaults(func=_cmd_report)
+
     dmn = sub.add_parser("daemon", help="run the RSU service (Zenoh in, MCAP log, calibration out)")
     dmn.add_argument("--config", required=True, help="rsu.yaml (see deploy/rsu.example.yaml)")
     dmn.set_defaults(func=_cmd_daemon)
@@ -479,7 +536,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the first simulator's world (cuboid boxes, no latency, IMU poses): every camera must calibrate",
     )
+    demo.add_argument(
+        "--keep",
+        metavar="DIR",
+        help="keep the daemon's recordings, results and reports in DIR (new or empty), plus simulation.mcap",
+    )
     demo.set_defaults(func=_cmd_demo)
+
+    add_bridge_parser(sub)
     return parser
 
 

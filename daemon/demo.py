@@ -26,8 +26,9 @@ import zenoh
 from daemon.bus import client_config, free_loopback_port, query
 from daemon.clock import ScaledClock
 from daemon.main import Daemon, DaemonEvent
-from daemon.recording import detections_key, v2x_key
+from daemon.recording import detections_key, v2x_key, write_simulation_mcap
 from pipeline.camera import camera_center
+from pipeline.errors import InputError
 from pipeline.frames import UtmFrame
 from pipeline.metrics import evaluate_against_ground_truth
 from schemas.common import decode_json
@@ -138,8 +139,22 @@ def run_demo(
     port: int | None = None,
     out: Printer = print,
     ideal: bool = False,
+    keep_dir: Path | None = None,
 ) -> int:
-    """Run the demo; 0 when the product kept its promise (module docstring), 1 otherwise."""
+    """Run the demo; 0 when the product kept its promise (module docstring), 1 otherwise.
+
+    `keep_dir` (a new or empty directory) keeps the daemon's state there (recordings/*.mcap with their
+    Foxglove views, cameras/*/history with results and reports) and adds simulation.mcap, the simulator's
+    own recording with the calibration vehicle's boxes marked from the truth and the results read back.
+    """
+    if keep_dir is not None:
+        keep_dir = Path(keep_dir)
+        if keep_dir.exists() and (not keep_dir.is_dir() or any(keep_dir.iterdir())):
+            raise InputError(
+                "--keep", f"{keep_dir} must be a new or empty directory (the daemon's state goes there)"
+            )
+        keep_dir.mkdir(parents=True, exist_ok=True)
+        state_dir = keep_dir
     started = time.monotonic()
     world = "the ideal world" if ideal else "the real world"
     out(f"rsucal demo: simulating preset {preset} (seed {seed}) in {world} ...")
@@ -187,13 +202,39 @@ def run_demo(
             stop.set()
             publisher.join(timeout=5.0)
             results = _read_calibrations(client, config)
+            if keep_dir is not None:
+                _wait_for_reports(statuses, started + timeout_s)
         finally:
             stop.set()
             for session in (client, publisher_session):
                 if session is not None:
                     session.close()  # type: ignore[no-untyped-call]
             daemon.stop()
-        return _report(sim, config, statuses, results, time.monotonic() - started, out)
+        code = _report(sim, config, statuses, results, time.monotonic() - started, out)
+        if keep_dir is not None:
+            _describe_kept(sim, keep_dir, results, out)
+        return code
+
+
+def _wait_for_reports(statuses: dict[str, CalibrationStatus], deadline: float) -> None:
+    """Jobs draw their reports after answering: keep the daemon and its job workers up until they exist."""
+    reports = [Path(s.last_job.report) for s in statuses.values() if s.last_job and s.last_job.report]
+    while not all(path.exists() for path in reports) and time.monotonic() < deadline:
+        time.sleep(0.1)
+
+
+def _describe_kept(
+    sim: SimulationResult, keep_dir: Path, results: dict[str, CalibrationResult], out: Printer
+) -> None:
+    """Write simulation.mcap next to the kept state and say where everything is."""
+    simulated = write_simulation_mcap(sim, keep_dir / "simulation.mcap", calibrations=list(results.values()))
+    out("")
+    out(f"kept in {keep_dir} (open the .mcap files in Foxglove, the .html reports in a browser):")
+    for path in sorted((keep_dir / "recordings").glob("*.mcap")):
+        out(f"  {path}  the daemon's recording: raw channels + Foxglove views + results")
+    out(f"  {simulated}  the simulator's recording, the calibration vehicle's boxes marked from the truth")
+    for path in sorted(keep_dir.glob("cameras/*/history/*.html")):
+        out(f"  {path}  a job's report")
 
 
 def _or_inf(value: float | None) -> float:

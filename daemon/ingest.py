@@ -13,6 +13,7 @@ import logging
 import math
 import re
 import threading
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -24,7 +25,7 @@ from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, utm_epsg_for
 from schemas.common import describe_validation_error
 from schemas.config import DaemonConfig, IngestConfig
-from schemas.messages import V2xPosition, check_detection_frame
+from schemas.messages import V2xPosition, check_detection_frame_boxes
 
 logger = logging.getLogger(__name__)
 
@@ -81,6 +82,7 @@ class DetectionsIn:
     boxes: int
     received_ns: int
     payload: bytes
+    box_fields: Sequence[Mapping[str, object]] = ()  # the validated boxes, as parsed (for the Foxglove view)
 
 
 @dataclass(frozen=True, slots=True)
@@ -318,7 +320,7 @@ class Decoder:
         if not self._fits(DETECTIONS, inbound):
             return None
         try:
-            frame_camera_id, stamp_ns, boxes = check_detection_frame(inbound.payload)
+            frame_camera_id, stamp_ns, boxes = check_detection_frame_boxes(inbound.payload)
         except ValidationError as err:
             self._reject_schema(DETECTIONS, key, err)
             return None
@@ -341,7 +343,7 @@ class Decoder:
             return None
         self._last_detection_ns[camera_id] = stamp_ns
         self._counters.add(DETECTIONS_ACCEPTED)
-        return DetectionsIn(camera_id, stamp_ns, boxes, inbound.received_ns, inbound.payload)
+        return DetectionsIn(camera_id, stamp_ns, len(boxes), inbound.received_ns, inbound.payload, boxes)
 
     # ------------------------------------------------------------------------------------------- V2X
 

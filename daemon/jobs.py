@@ -27,11 +27,11 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -43,12 +43,19 @@ from pydantic import ValidationError
 from daemon.offline import collapse_counted_notes
 from daemon.recording import MCAP_MAGIC, read_window
 from daemon.workers import descendant_pids, die_with_parent, kill_pid, track_pool
-from pipeline.calibrate import SOFTWARE_VERSION, CalibrationInputs, PipelineParams, calibrate
+from pipeline.calibrate import (
+    SOFTWARE_VERSION,
+    CalibrationInputs,
+    CalibrationOutcome,
+    PipelineParams,
+    calibrate,
+)
 from pipeline.errors import RsucalError
 from pipeline.frames import UtmFrame, poses_from_v2x
 from pipeline.validation import ValidationGates
 from schemas.common import CameraIntrinsics, VehicleProfile, describe_validation_error
 from schemas.config import ChangeConfig, GatesConfig, JobsConfig
+from schemas.messages import apply_labels
 from schemas.results import CalibrationResult, ChangeInfo, Provenance
 
 log = logging.getLogger(__name__)
@@ -86,6 +93,9 @@ class JobSpec:
     created_at_ns: int  # the result's created_at_ns (our clock, when the job was started)
     config_hash: str  # of the daemon's config, stored in the result's provenance
     timeout_s: float = DEFAULT_TIMEOUT_S  # jobs.timeout_s: wall time from the job's start in its worker
+    labels: dict[int, str] | None = None  # the camera's label map (its detector's class ids -> names)
+    # Where the job writes its HTML report (the camera's history/, beside the result), or None for none.
+    report_dir: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,6 +113,7 @@ class JobOutcome:
     # Last stamp of the newest image track in the chosen group: tells whether a re-verification really used
     # the new drive-past, or only the older ones still in the window.
     newest_track_end_ns: int | None = None
+    report_path: str | None = None  # the job's HTML report, when written
 
 
 # ---------------------------------------------------------------------------------------------- the job
@@ -176,6 +187,9 @@ class _Progress:
     notes: list[str] = field(default_factory=list)
     detections: int = 0
     poses: int = 0
+    # For the report, written after the job's time limit: the calibrate() outcome and what it was given.
+    calibration: CalibrationOutcome | None = None
+    inputs: CalibrationInputs | None = None
 
     def failed(self, spec: JobSpec, message: str) -> JobOutcome:
         return JobOutcome(
@@ -207,9 +221,64 @@ def run_job(spec: JobSpec) -> JobOutcome:
         with _time_limit(spec.timeout_s) as armed:
             if not armed:
                 progress.notes.append("time limit not enforced: the job does not run on a main thread")
-            return _run_job(spec, progress)
+            outcome = _run_job(spec, progress)
     except JobTimeout:
         return progress.failed(spec, f"timed out after {spec.timeout_s:g} s")
+    # Outside the time limit: the answer is made; a report that fails only costs its note.
+    return _with_report(spec, outcome, progress)
+
+
+# One report at a time in a worker process: matplotlib's pyplot state is not thread-safe.
+_REPORT_LOCK = threading.Lock()
+
+
+def _with_report(spec: JobSpec, outcome: JobOutcome, progress: _Progress) -> JobOutcome:
+    """Start the job's HTML report (spec.report_dir) on a thread of this worker and name it in the outcome.
+
+    Drawing takes seconds; the answer is published without waiting for it. Never raises: a report
+    directory that cannot be made is a note (no report named); a drawing that fails leaves a page saying
+    why at the named path.
+    """
+    if spec.report_dir is None or outcome.result_json is None or progress.calibration is None:
+        return outcome
+    assert progress.inputs is not None
+    from daemon.state import history_name
+
+    result = CalibrationResult.model_validate_json(outcome.result_json)
+    directory = Path(spec.report_dir)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        note = f"report not written: {type(err).__name__}: {err}"
+        return replace(outcome, stage_notes=(*outcome.stage_notes, note))
+    path = directory / history_name(result, ".html")
+    arguments = (path, result, progress.calibration, progress.inputs, outcome.stage_notes)
+    threading.Thread(target=_draw_report, args=arguments, name="rsucal-report", daemon=True).start()
+    return replace(outcome, report_path=str(path))
+
+
+def _draw_report(
+    path: Path,
+    result: CalibrationResult,
+    calibration: CalibrationOutcome,
+    inputs: CalibrationInputs,
+    notes: tuple[str, ...],
+) -> None:
+    """The report thread: the figures and the page, or a page with the reason they could not be drawn."""
+    with _REPORT_LOCK:
+        from daemon.recording import read_images
+        from daemon.report import write_report, write_report_failure  # matplotlib: only once needed
+
+        def images(stamps: Sequence[int]) -> Mapping[int, bytes]:
+            return read_images([Path(p) for p in inputs.recordings], result.rsu_id, result.camera_id, stamps)
+
+        try:
+            write_report(
+                result, calibration, inputs.vehicle, inputs.detections, path, notes=notes, images=images
+            )
+        except Exception as err:  # the report is a view of the answer, never a reason to lose it
+            with contextlib.suppress(OSError):
+                write_report_failure(result, path, f"{type(err).__name__}: {err}", notes)
 
 
 def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
@@ -257,7 +326,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
             camera_id=spec.camera_id,
             intrinsics=spec.intrinsics,
             vehicle=spec.vehicle,
-            detections=window.detections,
+            detections=apply_labels(window.detections, spec.labels),
             poses=vehicle_poses,
             crs=spec.crs,
             time_offset_ns=spec.time_offset_ns,
@@ -275,6 +344,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
                 created_at_ns=spec.created_at_ns,
                 map_fn=map_fn,
             )
+        progress.calibration, progress.inputs = outcome, inputs
         for report in outcome.stages:
             notes.append(f"{report.stage}: kept {report.kept}, discarded {report.discarded}")
             notes.extend(f"{report.stage}: {note}" for note in collapse_counted_notes(report.notes))

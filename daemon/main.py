@@ -32,8 +32,10 @@ import zenoh
 
 from daemon import __version__
 from daemon.access import check_access_rules
-from daemon.bus import Bus, Handlers, session_config
+from daemon.bus import Bus, BusError, Handlers, session_config
 from daemon.clock import Clock, SystemClock
+from daemon.detector import DetectorWorker, ImageRouter, build_workers
+from daemon.foxglove import frame_transform
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
 from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
 from daemon.recording import RotatingRecorder, iter_v2x, list_recordings
@@ -155,6 +157,7 @@ class Daemon:
 
         self._runner: JobRunner | None = None
         self._bus: Bus | None = None
+        self._detectors: dict[str, DetectorWorker] = {}
         self._threads: list[threading.Thread] = []
         self.started_at_ns = self.clock.now_ns()
         self._next_prune = 0.0
@@ -168,6 +171,8 @@ class Daemon:
         prepare_state_dir(self.state_dir)  # InputError (exit 2) when unusable: a configuration error
         if check_access_rules(self.config):
             log.info("access rules match the config: each camera and vehicle may publish only its own keys")
+        # Detector models load first: a bad one is a configuration error, before anything starts.
+        self._detectors = build_workers(self.config, self._on_detected, self.counters, self.clock)
         self._recover()
         self._runner = JobRunner(self.config.jobs.max_parallel)
         self._threads = [
@@ -180,13 +185,19 @@ class Daemon:
         ]
         for thread in self._threads:
             thread.start()
+        for worker in self._detectors.values():
+            worker.start()
+        on_image = None
+        if self._detectors:
+            image_rejects = RejectLog(self.counters, self.config.ingest.warn_interval_s, self.clock)
+            on_image = ImageRouter(self.config.rsu_id, self._detectors, self.counters, image_rejects)
         handlers = Handlers(
             calibration=self._answer_calibration,
             status=self._answer_status,
             trigger=self._answer_trigger,
             health=self._answer_health,
         )
-        self._bus = Bus(self.config, self._on_inbound, handlers, self.clock)
+        self._bus = Bus(self.config, self._on_inbound, handlers, self.clock, on_image=on_image)
         try:
             self._bus.open()
         except BaseException:
@@ -207,6 +218,9 @@ class Daemon:
         """Stop input, drain, finish the MCAP file, persist, close the bus and the workers. Idempotent."""
         if self._bus is not None:
             self._bus.close()  # no new input, no more queries
+        # The detectors' frames go through the inbox: stop them before ingest drains it.
+        for worker in self._detectors.values():
+            worker.stop(timeout_s=DRAIN_BUDGET_S)
         self._stop.set()
         for thread in self._threads:
             thread.join(timeout=DRAIN_BUDGET_S + 0.5)
@@ -228,6 +242,10 @@ class Daemon:
     @property
     def failure(self) -> str | None:
         """Why one of the daemon's own threads died (the process must then exit non-zero), or None."""
+        if self._failure is None:
+            for camera_id, worker in self._detectors.items():
+                if worker.failure is not None:
+                    return f"detector of camera {camera_id}: {worker.failure}"
         return self._failure
 
     def _guarded(self, loop: Callable[[], None]) -> None:
@@ -337,6 +355,19 @@ class Daemon:
             self._inbox_bytes += size
         self._inbox.put(Inbound(key, payload, received_ns))
 
+    def _on_detected(self, key: str, payload: bytes, received_ns: int) -> None:
+        """A detector thread's DetectionFrame: into the inbox like a bus message, and on the bus for other
+        sessions (a live viewer, another consumer); a failed put is counted, the frame is kept anyway."""
+        self._on_inbound(key, payload, received_ns)
+        bus = self._bus
+        if bus is None:
+            return
+        try:
+            bus.publish_detections(key.split("/")[3], payload)
+        except BusError as err:
+            self.counters.add("images.publish_failed")
+            log.debug("publishing a detected frame: %s", err)
+
     # ------------------------------------------------------------------------------------------ ingest thread
 
     def _ingest_loop(self) -> None:
@@ -376,13 +407,18 @@ class Daemon:
             return
         if isinstance(decoded, DetectionsIn):
             self.recorder.write_detections(
-                decoded.camera_id, decoded.stamp_ns, decoded.received_ns, decoded.payload
+                decoded.camera_id, decoded.stamp_ns, decoded.received_ns, decoded.payload, decoded.box_fields
             )
             self._camera_detections[decoded.camera_id] += 1
             return
         assert isinstance(decoded, V2xIn)
         self.recorder.write_v2x(
-            decoded.station_id, decoded.message.stamp_ns, decoded.received_ns, decoded.payload
+            decoded.station_id,
+            decoded.message.stamp_ns,
+            decoded.received_ns,
+            decoded.payload,
+            decoded.message,
+            is_vehicle=decoded.utm is not None,
         )
         if decoded.utm is None:
             return
@@ -472,6 +508,8 @@ class Daemon:
             created_at_ns=now_ns,
             config_hash=self._config_hash,
             timeout_s=self.config.jobs.timeout_s,
+            labels=None if camera.labels is None else dict(camera.labels),
+            report_dir=str(self.store.history_dir(camera_id)),
         )
         self.trackers[camera_id].mark_used(window)
         with self._lock:
@@ -580,6 +618,7 @@ class Daemon:
             finished_ns=now_ns,
             duration_s=duration_s,
             verdict=verdict,
+            report=outcome.report_path,
         )
         new_state = state.model_copy(
             update={
@@ -602,9 +641,14 @@ class Daemon:
             if publish is not None and result is not None:
                 self._current[camera_id] = result
                 self._current_json[camera_id] = publish
+        if result is not None:
+            # The recorder belongs to the ingest thread: the result channels are written there.
+            recorded = result
+            self._inbox.put(lambda: self.recorder.write_result(recorded, self.clock.now_ns()))
         if publish is not None and result is not None:
             if self._bus is not None:
                 self._bus.publish_calibration(camera_id, publish)
+                self._bus.publish_transform(camera_id, frame_transform(result))
             if self.trackers[camera_id].snapshot().learning:
                 learned = coverage_from_result(result)
                 self._inbox.put(lambda: self._learn_coverage(camera_id, learned))

@@ -62,7 +62,7 @@ class OfflineInputs:
 
 
 def load_offline_inputs(
-    camera_path: Path,
+    camera_path: Path | CameraIntrinsics,
     vehicle_path: Path,
     *,
     mcap_path: Path | None = None,
@@ -108,7 +108,10 @@ def load_offline_inputs(
         raise InputError("--crs", "a local frame has no zone; give --origin E,N with --crs to place it")
     if crs is not None:
         crs = _checked_crs(crs, "--crs")
-    intrinsics = load_intrinsics(Path(camera_path))
+    # The intrinsics may come from a result (rsucal report) instead of camera.yaml.
+    intrinsics = (
+        camera_path if isinstance(camera_path, CameraIntrinsics) else load_intrinsics(Path(camera_path))
+    )
     vehicle = load_vehicle(Path(vehicle_path))
 
     if mcap_path is not None:
@@ -122,7 +125,7 @@ def load_offline_inputs(
         crs = DEFAULT_YAML_CRS
         notes.append(f"poses are UTM without a zone: assuming {crs} (set --crs for the lat/lon output)")
     if camera_id is None:
-        stem = Path(camera_path).stem
+        stem = "" if isinstance(camera_path, CameraIntrinsics) else Path(camera_path).stem
         camera_id = stem if _IDENTIFIER.match(stem) else DEFAULT_CAMERA_ID
     detections = load_toolbox_detections(Path(detections_path), camera_id)
     poses = load_toolbox_poses(Path(poses_path))

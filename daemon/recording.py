@@ -21,7 +21,7 @@ import re
 import struct
 import zlib
 from collections import Counter
-from collections.abc import Callable, Collection, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -46,12 +46,14 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk
 from pydantic import BaseModel, ValidationError
 
-from daemon import __version__
+from daemon import __version__, foxglove
 from daemon.clock import Clock
+from daemon.foxglove import MessageSchema
 from pipeline.errors import RecordingError
 from schemas.common import decode_json, describe_validation_error
 from schemas.config import StorageConfig
 from schemas.messages import DetectionFrame, V2xPosition
+from schemas.results import CalibrationResult
 
 if TYPE_CHECKING:
     from sim.simulate import SimulationResult
@@ -102,12 +104,19 @@ _CHUNK_ERRORS: tuple[type[BaseException], ...] = (
 MAX_CHUNK_BYTES = 256 * 1024 * 1024
 
 Compression = Literal["zstd", "lz4", "none"]
+# A channel's schema: an rsucal model (JSON, with its JSON Schema) or a foreign one (Foxglove's protobuf).
+ChannelSchema = type[BaseModel] | MessageSchema
 _COMPRESSION_NAMES: dict[str, str] = {"zstd": "zstd", "lz4": "lz4", "none": ""}  # as written in chunks
 
 
 def detections_key(rsu_id: str, camera_id: str) -> str:
     """Bus key (and MCAP topic) of a camera's detections."""
     return f"rsu/{rsu_id}/camera/{camera_id}/detections"
+
+
+def image_key(rsu_id: str, camera_id: str) -> str:
+    """Bus key (and MCAP topic) of a camera's images (foxglove.CompressedImage), for its detector."""
+    return f"rsu/{rsu_id}/camera/{camera_id}/image"
 
 
 def v2x_key(station_id: int) -> str:
@@ -140,6 +149,11 @@ def _record_bytes(record: McapRecord) -> bytes:
 @functools.cache
 def _schema_data(model: type[BaseModel]) -> bytes:
     return json.dumps(model.model_json_schema(), separators=(",", ":")).encode("utf-8")
+
+
+@functools.cache
+def _message_schema(model: type[BaseModel]) -> MessageSchema:
+    return MessageSchema(f"rsucal.{model.__name__}", "jsonschema", _schema_data(model), "json")
 
 
 def _compressor(compression: Compression) -> Callable[[bytearray], bytes]:
@@ -189,7 +203,7 @@ class RecordingWriter:
         except FileExistsError as err:
             raise RecordingError(f"{self.path}: already exists; recordings are never overwritten") from err
         self._bytes_written = 0
-        self._schemas: dict[type[BaseModel], Schema] = {}
+        self._schemas: dict[MessageSchema, Schema] = {}
         self._channels: dict[str, _ChannelState] = {}
         self._channel_records: list[Channel] = []
         self._chunk_indexes: list[ChunkIndex] = []
@@ -197,6 +211,7 @@ class RecordingWriter:
         # entries as a flat [log_time, offset, log_time, offset, ...] list.
         self._chunk = bytearray()
         self._chunk_messages = 0
+        self._chunk_views = 0
         self._chunk_start_ns = _MAX_U64
         self._chunk_end_ns = 0
         self._chunk_index: dict[int, list[int]] = {}
@@ -223,8 +238,9 @@ class RecordingWriter:
 
     @property
     def pending_messages(self) -> int:
-        """Messages in the open chunk: in memory only, lost by a crash until the chunk is written."""
-        return self._chunk_messages
+        """Received messages in the open chunk (views not counted): in memory only, lost by a crash until
+        the chunk is written."""
+        return self._chunk_messages - self._chunk_views
 
     def has_channel(self, key: str) -> bool:
         """Whether `key` already has a channel (writing to it then needs no new channel id)."""
@@ -235,11 +251,19 @@ class RecordingWriter:
         self.write_raw(key, type(message), message.model_dump_json().encode("utf-8"), received_ns, stamp_ns)
 
     def write_raw(
-        self, key: str, model: type[BaseModel], payload: bytes, received_ns: int, stamp_ns: int
+        self,
+        key: str,
+        model: ChannelSchema,
+        payload: bytes,
+        received_ns: int,
+        stamp_ns: int,
+        is_view: bool = False,
     ) -> None:
-        """Log an already validated JSON payload of `model` as it arrived (no re-serialisation).
+        """Log an already validated payload of `model` as it arrived (no re-serialisation).
 
-        `model` names the channel's schema when `key` is new; the payload is not checked against it.
+        `model` names the channel's schema when `key` is new (an rsucal model: JSON; a MessageSchema: its
+        own encoding, e.g. Foxglove's protobuf); the payload is not checked against it. `is_view`: derived
+        from a received message (a Foxglove view, a result), so not in pending_messages.
         """
         if self._finished:
             raise RecordingError(f"{self.path}: recording already finished")
@@ -267,6 +291,8 @@ class RecordingWriter:
         if received_ns > self._chunk_end_ns:
             self._chunk_end_ns = received_ns
         self._chunk_messages += 1
+        if is_view:
+            self._chunk_views += 1
         self.messages_written += 1
         if len(chunk) >= self._chunk_size:
             self._end_chunk()
@@ -280,6 +306,14 @@ class RecordingWriter:
     def write_v2x(self, msg: V2xPosition, received_ns: int) -> None:
         """Log a V2xPosition on v2x/cam/{msg.station_id}."""
         self.write(v2x_key(msg.station_id), msg, received_ns, msg.stamp_ns)
+
+    def write_result(self, result: CalibrationResult, received_ns: int) -> None:
+        """Log a CalibrationResult (JSON) on .../calibration and, with a pose, its Foxglove views.
+
+        log_time = publish_time = `received_ns` (when the daemon had it); the views are stamped
+        created_at_ns inside their messages.
+        """
+        write_result_views(self.write_raw, result, received_ns)
 
     def flush(self) -> None:
         """Close the open chunk and fsync, so a crash after this loses nothing already written.
@@ -332,24 +366,24 @@ class RecordingWriter:
         self._file.write(data)
         self._bytes_written += len(data)
 
-    def _register_channel(self, key: str, model: type[BaseModel]) -> _ChannelState:
+    def _register_channel(self, key: str, model: ChannelSchema) -> _ChannelState:
         if len(self._channels) >= MAX_CHANNELS:
             # Every V2X station is a channel; a file must be rotated before the uint16 ids run out.
             raise RecordingError(f"{self.path}: {MAX_CHANNELS} channels in one recording; rotate the file")
-        schema = self._schemas.get(model)
+        spec = model if isinstance(model, MessageSchema) else _message_schema(model)
+        schema = self._schemas.get(spec)
         if schema is None:
-            schema = Schema(
-                id=len(self._schemas) + 1,
-                name=f"rsucal.{model.__name__}",
-                encoding="jsonschema",
-                data=_schema_data(model),
-            )
-            self._schemas[model] = schema
+            schema = Schema(id=len(self._schemas) + 1, name=spec.name, encoding=spec.encoding, data=spec.data)
+            self._schemas[spec] = schema
             schema_bytes = _record_bytes(schema)
             self._append(schema_bytes)
             self._chunk += schema_bytes
         record = Channel(
-            id=len(self._channels) + 1, topic=key, message_encoding="json", schema_id=schema.id, metadata={}
+            id=len(self._channels) + 1,
+            topic=key,
+            message_encoding=spec.message_encoding,
+            schema_id=schema.id,
+            metadata={},
         )
         # Written twice. Inside the chunk where it is first used, like mcap's writer: CRC-protected with
         # the messages, and a crashed file has no summary to supply it. And at top level (it lands before
@@ -413,6 +447,7 @@ class RecordingWriter:
         self._message_end_ns = max(self._message_end_ns, self._chunk_end_ns)
         self._chunk = bytearray()
         self._chunk_messages = 0
+        self._chunk_views = 0
         self._chunk_start_ns = _MAX_U64
         self._chunk_end_ns = 0
         self._chunk_index = {}
@@ -460,25 +495,99 @@ class RecordingWriter:
         )
 
 
-def write_simulation_mcap(result: SimulationResult, path: Path) -> Path:
+WriteRaw = Callable[[str, ChannelSchema, bytes, int, int], None]  # key, schema, payload, log_time, stamp
+
+
+def write_result_views(write_raw: WriteRaw, result: CalibrationResult, received_ns: int) -> None:
+    """The result channels: CalibrationResult JSON on rsu/{rsu}/camera/{cam}/calibration and, for an
+    accepted result, foxglove.FrameTransform (UTM -> camera) on .../calibration/transform, the local origin
+    (UTM -> local frame) on .../calibration/origin and foxglove.CameraCalibration on .../camera_info."""
+    rsu_id, camera_id = result.rsu_id, result.camera_id
+    payload = result.model_dump_json().encode("utf-8")
+    write_raw(
+        f"rsu/{rsu_id}/camera/{camera_id}/calibration", CalibrationResult, payload, received_ns, received_ns
+    )
+    if not result.verdict.is_accepted or result.R is None or result.t is None:
+        return  # a refused result's pose (if any) is not the camera's: nothing to place in a 3D scene
+    for key, schema, data in (
+        (
+            foxglove.transform_key(rsu_id, camera_id),
+            foxglove.FRAME_TRANSFORM,
+            foxglove.frame_transform(result),
+        ),
+        (
+            foxglove.origin_topic(rsu_id, camera_id),
+            foxglove.FRAME_TRANSFORM,
+            foxglove.origin_transform(result),
+        ),
+        (
+            foxglove.camera_info_topic(rsu_id, camera_id),
+            foxglove.CAMERA_CALIBRATION,
+            foxglove.camera_calibration(result),
+        ),
+    ):
+        write_raw(key, schema, data, received_ns, received_ns)
+
+
+def _vehicle_boxes(result: SimulationResult) -> dict[tuple[str, int], int]:
+    """(camera_id, stamp_ns) -> index of the calibration vehicle's box, from the simulator's ground truth."""
+    found: dict[tuple[str, int], int] = {}
+    for camera_id, truth in result.ground_truth.items():
+        for frame in truth.frames:
+            if frame.calib_box is not None:
+                found[(camera_id, frame.stamp_ns)] = frame.calib_box
+    return found
+
+
+def write_simulation_mcap(
+    result: SimulationResult, path: Path, calibrations: Sequence[CalibrationResult] = ()
+) -> Path:
     """Write a simulation as the daemon would have recorded it, in log-time order; returns `path`.
 
-    Every camera's detections are logged 30 ms after their stamp, every V2X message 20 ms after.
+    Every camera's detections are logged 30 ms after their stamp, every V2X message 20 ms after; beside
+    each its Foxglove view (ImageAnnotations with the calibration vehicle's box in its own colour, known
+    here from the ground truth; LocationFix). `calibrations` are logged after the last message, with their
+    result channels (write_result_views).
     """
     path = Path(path)
-    entries: list[tuple[int, int, int, str, BaseModel]] = []  # (log_time, kind, stamp, key, message)
+    vehicle_boxes = _vehicle_boxes(result)
+    # (log_time, kind, stamp, key, schema, payload)
+    entries: list[tuple[int, int, int, str, ChannelSchema, bytes]] = []
     for camera_id, frames in result.detections.items():
         key = detections_key(result.rsu_id, camera_id)
+        view_key = foxglove.annotations_topic(result.rsu_id, camera_id)
         for frame in frames:
-            entries.append((frame.stamp_ns + SIM_DETECTION_LATENCY_NS, 0, frame.stamp_ns, key, frame))
+            log_time = frame.stamp_ns + SIM_DETECTION_LATENCY_NS
+            entries.append(
+                (log_time, 0, frame.stamp_ns, key, DetectionFrame, frame.model_dump_json().encode())
+            )
+            calib = vehicle_boxes.get((camera_id, frame.stamp_ns))
+            others = [box.model_dump() for i, box in enumerate(frame.boxes) if i != calib]
+            vehicle = [] if calib is None else [_corners(frame.boxes[calib].model_dump())]
+            view = foxglove.image_annotations(frame.stamp_ns, others, vehicle)
+            entries.append((log_time, 1, frame.stamp_ns, view_key, foxglove.IMAGE_ANNOTATIONS, view))
     for msg in result.v2x:
-        entries.append((msg.stamp_ns + SIM_V2X_LATENCY_NS, 1, msg.stamp_ns, v2x_key(msg.station_id), msg))
-    # Sort on the numeric fields only (messages are not orderable); ties keep camera, then V2X, order.
+        log_time = msg.stamp_ns + SIM_V2X_LATENCY_NS
+        entries.append(
+            (log_time, 2, msg.stamp_ns, v2x_key(msg.station_id), V2xPosition, msg.model_dump_json().encode())
+        )
+        fix = foxglove.location_fix(msg, is_vehicle=msg.station_id == result.station_id)
+        entries.append(
+            (log_time, 3, msg.stamp_ns, foxglove.location_topic(msg.station_id), foxglove.LOCATION_FIX, fix)
+        )
+    # Sort on the numeric fields only; ties keep camera, annotation, V2X, location order.
     entries.sort(key=lambda entry: entry[:3])
     with RecordingWriter(path, overwrite=True) as writer:
-        for log_time, _, stamp_ns, key, message in entries:
-            writer.write(key, message, received_ns=log_time, stamp_ns=stamp_ns)
+        for log_time, _, stamp_ns, key, schema, payload in entries:
+            writer.write_raw(key, schema, payload, received_ns=log_time, stamp_ns=stamp_ns)
+        last_ns = entries[-1][0] if entries else 0
+        for calibration in calibrations:
+            write_result_views(writer.write_raw, calibration, max(last_ns, calibration.created_at_ns))
     return path
+
+
+def _corners(box: dict[str, float]) -> tuple[float, float, float, float]:
+    return box["x1"], box["y1"], box["x2"], box["y2"]
 
 
 # ---------------------------------------------------------------------------------------------- reading
@@ -922,6 +1031,47 @@ def read_recording(
     )
 
 
+def read_images(
+    files: Sequence[Path], rsu_id: str, camera_id: str, stamps: Collection[int], tolerance_ns: int = 1_000_000
+) -> dict[int, bytes]:
+    """The recorded image (compressed bytes) nearest each of `stamps` within `tolerance_ns`, by stamp.
+
+    Reads foxglove.CompressedImage messages on image_key(rsu_id, camera_id); stamps without an image
+    are left out (most recordings hold none). Damaged files and undecodable messages are skipped.
+    """
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from google.protobuf.message import DecodeError
+
+    wanted = sorted(stamps)
+    if not wanted:
+        return {}
+    topic = image_key(rsu_id, camera_id)
+    found: dict[int, tuple[int, bytes]] = {}  # wanted stamp -> (|dt|, image)
+    low, high = wanted[0] - tolerance_ns, wanted[-1] + tolerance_ns
+    for path in files:
+        scan = _Scan()
+        try:
+            for channel, message in _iter_file(Path(path), scan):
+                if channel is None or channel.topic != topic or not low <= message.publish_time <= high:
+                    continue
+                try:
+                    image = CompressedImage.FromString(message.data)
+                except DecodeError:
+                    continue
+                stamp_ns = (
+                    image.timestamp.ToNanoseconds() if image.HasField("timestamp") else message.publish_time
+                )
+                i = bisect.bisect_left(wanted, stamp_ns)
+                for j in (i - 1, i):
+                    if 0 <= j < len(wanted) and abs(wanted[j] - stamp_ns) <= tolerance_ns:
+                        distance = abs(wanted[j] - stamp_ns)
+                        if wanted[j] not in found or distance < found[wanted[j]][0]:
+                            found[wanted[j]] = (distance, bytes(image.data))
+        except RecordingError as err:
+            logger.warning("images: %s", err)
+    return {stamp: image for stamp, (_, image) in found.items()}
+
+
 # ---------------------------------------------------------------------------------------------- windows
 
 
@@ -1118,6 +1268,10 @@ class RotatingRecorder:
     A failing disk never raises out of write_*: the file is abandoned (readable up to its last complete
     chunk), the error logged (last_error), and messages are dropped for RETRY_AFTER_ERROR_S before a new
     file is tried. messages_dropped counts those and the messages of the chunk that failed.
+
+    With storage.foxglove_views, each message also gets its Foxglove view in the same file (daemon.foxglove:
+    LocationFix per station, ImageAnnotations per camera; results with write_result). Views are not counted
+    in messages_written or messages_dropped, which count the messages received.
     """
 
     def __init__(self, directory: Path, rsu_id: str, storage: StorageConfig, clock: Clock) -> None:
@@ -1137,7 +1291,8 @@ class RotatingRecorder:
         self._dirty = False  # messages written since the last flush
         self._closed = False
         self._retry_at_ns: int | None = None
-        self._detection_keys: dict[str, str] = {}
+        self._detection_keys: dict[str, tuple[str, str]] = {}  # camera_id -> (raw key, annotations topic)
+        self._views = storage.foxglove_views
         self._bytes_finished = 0
         self.files_written = 0
         self.messages_written = 0
@@ -1155,16 +1310,56 @@ class RotatingRecorder:
         writer = self._writer
         return self._bytes_finished + (writer.bytes_written if writer is not None else 0)
 
-    def write_detections(self, camera_id: str, stamp_ns: int, received_ns: int, payload: bytes) -> None:
-        """Log a validated DetectionFrame payload on rsu/{rsu_id}/camera/{camera_id}/detections."""
-        key = self._detection_keys.get(camera_id)
-        if key is None:
-            key = self._detection_key(camera_id)
-        self._write(key, DetectionFrame, stamp_ns, received_ns, payload)
+    def write_detections(
+        self,
+        camera_id: str,
+        stamp_ns: int,
+        received_ns: int,
+        payload: bytes,
+        boxes: Sequence[Mapping[str, object]] | None = None,
+    ) -> None:
+        """Log a validated DetectionFrame payload on rsu/{rsu_id}/camera/{camera_id}/detections and, given its
+        `boxes` (x1, y1, x2, y2 px) and with views on, their foxglove.ImageAnnotations beside it."""
+        keys = self._detection_keys.get(camera_id)
+        if keys is None:
+            keys = self._detection_key(camera_id)
+        if (
+            self._write(keys[0], DetectionFrame, stamp_ns, received_ns, payload)
+            and boxes is not None
+            and self._views
+        ):
+            view = foxglove.image_annotations(stamp_ns, boxes)
+            self._write_view(keys[1], foxglove.IMAGE_ANNOTATIONS, view, received_ns, stamp_ns)
 
-    def write_v2x(self, station_id: int, stamp_ns: int, received_ns: int, payload: bytes) -> None:
-        """Log a validated V2xPosition payload on v2x/cam/{station_id}."""
-        self._write(f"v2x/cam/{station_id}", V2xPosition, stamp_ns, received_ns, payload)
+    def write_v2x(
+        self,
+        station_id: int,
+        stamp_ns: int,
+        received_ns: int,
+        payload: bytes,
+        message: V2xPosition | None = None,
+        is_vehicle: bool = False,
+    ) -> None:
+        """Log a validated V2xPosition payload on v2x/cam/{station_id} and, given the decoded `message` and
+        with views on, its foxglove.LocationFix on v2x/cam/{station_id}/location (calibration vehicles in
+        their own colour)."""
+        if self._write(f"v2x/cam/{station_id}", V2xPosition, stamp_ns, received_ns, payload) and (
+            message is not None and self._views
+        ):
+            view = foxglove.location_fix(message, is_vehicle)
+            self._write_view(
+                foxglove.location_topic(station_id), foxglove.LOCATION_FIX, view, received_ns, stamp_ns
+            )
+
+    def write_result(self, result: CalibrationResult, received_ns: int) -> None:
+        """Log a finished job's result on .../calibration and, with a pose and views on, its FrameTransform,
+        origin and CameraCalibration (write_result_views); not counted as a received message."""
+        if self._views:
+            write_result_views(self._write_view, result, received_ns)
+        else:
+            payload = result.model_dump_json().encode("utf-8")
+            key = f"rsu/{result.rsu_id}/camera/{result.camera_id}/calibration"
+            self._write_view(key, CalibrationResult, payload, received_ns, received_ns)
 
     def tick(self) -> None:
         """Rotate a file older than rotate_s, else flush when flush_interval_s has passed since the last."""
@@ -1242,19 +1437,40 @@ class RotatingRecorder:
     ) -> None:
         self.close()
 
-    def _detection_key(self, camera_id: str) -> str:
+    def _detection_key(self, camera_id: str) -> tuple[str, str]:
         if not _IDENTIFIER.match(camera_id):
             raise ValueError(
                 f"camera_id {camera_id!r} is not a valid key segment ([A-Za-z0-9_.-], 1-64 chars)"
             )
         if len(self._detection_keys) >= 4096:  # bounded: camera ids come from outside (validated, though)
             self._detection_keys.clear()
-        key = self._detection_keys[camera_id] = detections_key(self.rsu_id, camera_id)
-        return key
+        keys = self._detection_keys[camera_id] = (
+            detections_key(self.rsu_id, camera_id),
+            foxglove.annotations_topic(self.rsu_id, camera_id),
+        )
+        return keys
 
-    def _write(
-        self, key: str, model: type[BaseModel], stamp_ns: int, received_ns: int, payload: bytes
+    def _write_view(
+        self, key: str, schema: ChannelSchema, payload: bytes, received_ns: int, stamp_ns: int
     ) -> None:
+        """Append a view (or a result) to the open file, opening one if needed; failures as in _write, but
+        never counted as received messages."""
+        writer = self._writer
+        if writer is None or (writer.channel_count >= MAX_CHANNELS and not writer.has_channel(key)):
+            writer = self._rotate(received_ns)
+            if writer is None:
+                return
+        try:
+            writer.write_raw(key, schema, payload, received_ns, stamp_ns, is_view=True)
+        except OSError as err:
+            self._fail(writer, err, received_ns)
+            return
+        self._dirty = True
+        if writer.bytes_written >= self.storage.rotate_bytes:
+            self._finish_current()
+
+    def _write(self, key: str, model: ChannelSchema, stamp_ns: int, received_ns: int, payload: bytes) -> bool:
+        """Log a received message; whether it was written (not dropped)."""
         # The hot path (>= 20,000 messages/s): int compares, one dict lookup, then the writer's append.
         writer = self._writer
         if (
@@ -1265,7 +1481,7 @@ class RotatingRecorder:
             writer = self._rotate(received_ns)
             if writer is None:
                 self.messages_dropped += 1
-                return
+                return False
         written_before = writer.messages_written
         try:
             writer.write_raw(key, model, payload, received_ns, stamp_ns)
@@ -1273,11 +1489,13 @@ class RotatingRecorder:
             # Raised while writing a full chunk (this message in it) or, rarely, a channel record (not).
             self.messages_dropped += writer.messages_written == written_before
             self._fail(writer, err, received_ns)
-            return
+            return False
         self.messages_written += 1
         self._dirty = True
         if writer.bytes_written >= self.storage.rotate_bytes:
             self._finish_current()
+            return False  # the view would open the next file on its own: it follows its message or nothing
+        return True
 
     def _rotate(self, received_ns: int) -> RecordingWriter | None:
         """Finish the open file (if any) and open the next; None while paused after a write error."""

@@ -71,8 +71,7 @@ class StateStore:
 
     def history_path(self, result: CalibrationResult) -> Path:
         """history/{created_at_ns:019d}-{result_id}.json (characters unsafe in a file name become '_')."""
-        safe_id = _UNSAFE_IN_NAME.sub("_", result.result_id)
-        return self.history_dir(result.camera_id) / f"{result.created_at_ns:0{_STAMP_DIGITS}d}-{safe_id}.json"
+        return self.history_dir(result.camera_id) / history_name(result, ".json")
 
     def history(self, camera_id: str) -> list[Path]:
         """History entries of a camera, oldest first."""
@@ -178,6 +177,10 @@ class StateStore:
                     continue
                 entry.unlink(missing_ok=True)
                 removed.append(entry)
+                report = entry.with_suffix(".html")  # the job's report goes with its result
+                if report.exists():
+                    report.unlink(missing_ok=True)
+                    removed.append(report)
             removed.extend(_remove_stale_tmp(directory))
             if removed:
                 _fsync_dir(directory)
@@ -206,6 +209,12 @@ class StateStore:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+
+
+def history_name(result: CalibrationResult, suffix: str) -> str:
+    """{created_at_ns:019d}-{result_id}{suffix}: a history entry (.json) or its job's report (.html)."""
+    safe_id = _UNSAFE_IN_NAME.sub("_", result.result_id)
+    return f"{result.created_at_ns:0{_STAMP_DIGITS}d}-{safe_id}{suffix}"
 
 
 def _decode_result(raw: bytes, camera_id: str) -> CalibrationResult | str:

@@ -258,6 +258,8 @@ def _camera_row(
         last_job = f"{format_age(job.finished_ns, now_ns)}{took}, {verdict}"
         if job.verdict is not None and job.verdict.reasons:
             notes.append(f"{job.job_id} {job.verdict.status}: " + "; ".join(job.verdict.reasons))
+        if job.report is not None:
+            notes.append(f"{job.job_id} report: {job.report}")
     verified = format_age(status.verified_at_ns, now_ns) if status.verified_at_ns is not None else "-"
     position = accuracy = "-"
     if result is not None and result.camera_position is not None:

@@ -21,7 +21,7 @@ import importlib.metadata
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -151,11 +151,30 @@ class Candidate:
 
 
 @dataclass(frozen=True, slots=True)
+class CalibrationDiagnostics:
+    """What the stages worked on, for reports (daemon.report): nothing here changes the result.
+
+    origin: the local frame's origin; trajectory: the vehicle's poses (local frame, camera clock); tracks:
+    image tracks overlapping them in time; hypotheses: one EPnP pose per track that gave a plausible one;
+    groups: track ids of each hypothesis group (grouping, else the regrouping of refined hypotheses);
+    ground: the plane under the chosen group's tracks (None before selection).
+    """
+
+    origin: LocalOrigin
+    trajectory: Trajectory
+    tracks: tuple[MatchedTrack, ...] = ()
+    hypotheses: tuple[Hypothesis, ...] = ()
+    groups: tuple[tuple[int, ...], ...] = ()
+    ground: GroundPlaneFit | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class CalibrationOutcome:
     result: CalibrationResult
     stages: tuple[StageReport, ...]
     candidates: tuple[Candidate, ...]
     chosen: Candidate | None
+    diagnostics: CalibrationDiagnostics | None = None  # None when refused before the poses were usable
 
 
 def calibrate(
@@ -191,9 +210,11 @@ def _calibrate(
     camera = CameraModel.from_intrinsics(inputs.intrinsics)
     created = created_at_ns if created_at_ns is not None else time.time_ns()
 
+    diagnostics: CalibrationDiagnostics | None = None  # grows with each stage, for refusals too
+
     def refuse(reason: str, origin: LocalOrigin | None = None) -> CalibrationOutcome:
         result = _refused_result(inputs, params, origin, created, [reason])
-        return CalibrationOutcome(result, tuple(report), (), None)
+        return CalibrationOutcome(result, tuple(report), (), None, diagnostics)
 
     if not inputs.poses:
         return refuse("no calibration-vehicle poses in the data window")
@@ -209,6 +230,7 @@ def _calibrate(
         time_offset_ns=inputs.time_offset_ns,
     )
     trajectory = make_trajectory(inputs.poses, origin, association)
+    diagnostics = CalibrationDiagnostics(origin, trajectory)
 
     # Stage 2: image tracks.
     say("tracking", 0.1)
@@ -236,6 +258,7 @@ def _calibrate(
     )
     if not matched:
         return refuse("no image track overlaps the calibration vehicle's poses in time", origin)
+    diagnostics = replace(diagnostics, tracks=tuple(matched))
 
     # Ground plane for the below-ground test: the vehicle's footprint while any track was visible.
     try:
@@ -258,6 +281,7 @@ def _calibrate(
     )
     if not hypothesis_set.hypotheses:
         return refuse("no track gave a plausible camera pose (EPnP + RANSAC)", origin)
+    diagnostics = replace(diagnostics, hypotheses=hypothesis_set.hypotheses)
 
     # Stage 4: grouping.
     say("grouping", 0.45)
@@ -294,6 +318,7 @@ def _calibrate(
             "no two hypotheses agree: the calibration vehicle was not seen on two separate traversals",
             origin,
         )
+    diagnostics = replace(diagnostics, groups=tuple(tuple(g) for g in groups))
 
     # Stage 5: refinement of every group.
     hypotheses_by_id = {h.track_id: h for h in hypothesis_set.hypotheses}
@@ -364,7 +389,8 @@ def _calibrate(
         )
     )
     say("done", 1.0)
-    return CalibrationOutcome(result, tuple(report), tuple(candidates), chosen)
+    diagnostics = replace(diagnostics, ground=final_ground)
+    return CalibrationOutcome(result, tuple(report), tuple(candidates), chosen, diagnostics)
 
 
 def _refine_group(

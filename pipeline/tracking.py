@@ -16,6 +16,7 @@ from scipy.optimize import linear_sum_assignment
 
 from pipeline.arrays import Boxes, FloatArray, IntArray, Mask, Stamps, check_shape
 from pipeline.errors import InputError, ShapeError
+from schemas.common import toolbox_class_id
 from schemas.messages import DetectionFrame
 
 _NO_MATCH_COST = 2.0  # Eq. 2: cost of a pair whose IoU is 0; such pairs are never associated
@@ -28,7 +29,8 @@ _TINY = 1e-12  # px^2; floor of denominators that are 0 only when their numerato
 
 @dataclass(frozen=True, slots=True)
 class FrameBoxes:
-    """One camera image: stamp_ns (camera clock), boxes (N, 4) px x1, y1, x2, y2, classes (N,) class ids."""
+    """One camera image: stamp_ns (camera clock), boxes (N, 4) px x1, y1, x2, y2, classes (N,) toolbox
+    class ids (names mapped by schemas.common.toolbox_class_id; -1 for a name the toolbox has no id for)."""
 
     stamp_ns: int
     boxes: Boxes
@@ -78,7 +80,7 @@ def frames_from_detections(frames: Sequence[DetectionFrame]) -> list[FrameBoxes]
         if result and result[-1].stamp_ns == frame.stamp_ns:
             continue
         boxes = np.array([(b.x1, b.y1, b.x2, b.y2) for b in frame.boxes], dtype=np.float64).reshape(-1, 4)
-        classes = np.array([b.cls for b in frame.boxes], dtype=np.int64)
+        classes = np.array([toolbox_class_id(b.cls) for b in frame.boxes], dtype=np.int64)
         result.append(FrameBoxes(stamp_ns=frame.stamp_ns, boxes=boxes, classes=classes))
     return result
 

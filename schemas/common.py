@@ -7,9 +7,11 @@ decoder error always names the offending field (pydantic's `loc`).
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Mapping
 from typing import Annotated, Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError, model_validator
 
 # 2000..2200 in ns: rejects seconds, milliseconds or microseconds passed where nanoseconds belong (a stamp
 # in seconds read as ns falls in January 1970) and negative or overflowed stamps.
@@ -27,6 +29,59 @@ Identifier = Annotated[
 Vec3 = tuple[Finite, Finite, Finite]
 Matrix3 = tuple[Vec3, Vec3, Vec3]
 
+# A detector's class: an integer id or a name ("car", "truck", "traffic light"). Names start with a letter,
+# so the string "4" is neither (strict JSON: an id is a JSON number).
+MAX_CLASS_ID = 1000
+ClassId = Annotated[int, Field(ge=0, le=MAX_CLASS_ID, description="detector class id")]
+ClassName = Annotated[
+    str,
+    Field(min_length=1, max_length=32, pattern=r"^[A-Za-z][A-Za-z0-9_ \-]*$", description="class name"),
+]
+# Integer ids of the reference toolbox (docs/design.md: boxes), the ids the pipeline works with.
+TOOLBOX_CLASS_IDS: Mapping[str, int] = {"car": 4, "truck": 5, "van": 6, "bus": 7}
+OTHER_CLASS_ID = -1  # a class name the toolbox has no id for (e.g. "motorcycle")
+
+
+_CLASS_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_ \-]{0,31}")
+
+
+def _class_label(value: Any) -> int | str:
+    # One validator rather than a union, so an error names `cls` itself and says what would be right.
+    # JSON true is not 1: only real integers are ids (strict, like every other field).
+    if isinstance(value, int) and not isinstance(value, bool):
+        if not 0 <= value <= MAX_CLASS_ID:
+            raise ValueError(f"class id {value} is outside [0, {MAX_CLASS_ID}]")
+        return value
+    if isinstance(value, str):
+        if _CLASS_NAME.fullmatch(value) is None:
+            raise ValueError(
+                f"class name {value[:40]!r} must be 1-32 letters, digits, spaces, '_' or '-', "
+                "starting with a letter"
+            )
+        return value
+    raise ValueError(f"expected an integer class id or a class name like 'car', got {type(value).__name__}")
+
+
+ClassLabel = Annotated[int | str, PlainValidator(_class_label, json_schema_input_type=ClassId | ClassName)]
+
+
+def class_name(label: int | str, labels: Mapping[int, str] | None = None) -> int | str:
+    """A box's class as a name where one is known: ids through a camera's label map (`labels`, the
+    detector's id -> name), names as given (lower case); ids without a map stay ids (toolbox ids)."""
+    if isinstance(label, str):
+        return label.lower()
+    if labels is not None and label in labels:
+        return labels[label].lower()
+    return label
+
+
+def toolbox_class_id(label: int | str) -> int:
+    """The toolbox id of a class: ids as they are, names through TOOLBOX_CLASS_IDS (case-insensitive),
+    OTHER_CLASS_ID (-1) for a name the toolbox has no id for."""
+    if isinstance(label, str):
+        return TOOLBOX_CLASS_IDS.get(label.lower(), OTHER_CLASS_ID)
+    return label
+
 
 class StrictModel(BaseModel):
     """Base of every rsucal model: frozen, no unknown fields, no NaN/inf; decode with `decode_json`."""
@@ -35,14 +90,16 @@ class StrictModel(BaseModel):
 
 
 class Box(StrictModel):
-    """One detected box in pixels (x right, y down) with the detector's class id and score."""
+    """One detected box in pixels (x right, y down) with the detector's class (id or name) and score."""
 
     x1: PixelCoord
     y1: PixelCoord
     x2: PixelCoord
     y2: PixelCoord
-    cls: int = Field(
-        default=4, ge=0, le=1000, description="class id; toolbox ids 4 car, 5 truck, 6 van, 7 bus"
+    cls: ClassLabel = Field(
+        default=4,
+        description="class id (toolbox ids 4 car, 5 truck, 6 van, 7 bus, unless the camera has a label map) "
+        "or name ('car')",
     )
     score: float = Field(default=1.0, ge=0.0, le=1.0, allow_inf_nan=False)
 

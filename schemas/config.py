@@ -12,7 +12,15 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from schemas.common import CameraIntrinsics, Identifier, StrictModel, VehicleProfile
+from schemas.common import (
+    CameraIntrinsics,
+    ClassId,
+    ClassLabel,
+    ClassName,
+    Identifier,
+    StrictModel,
+    VehicleProfile,
+)
 
 GIB = 1024**3
 MIB = 1024**2
@@ -74,6 +82,32 @@ class GeoPoint(StrictModel):
     alt: float | None = Field(default=None, ge=-500.0, le=9000.0, allow_inf_nan=False)
 
 
+class DetectorConfig(StrictModel):
+    """An ONNX detector the daemon runs on this camera's images (`rsu/{rsu}/camera/{cam}/image`, Foxglove
+    CompressedImage, JPEG or PNG); its boxes enter ingest like bus detections, stamped with the image's."""
+
+    model: Path = Field(description="the ONNX file (any export of the layout's family); never downloaded")
+    layout: Literal["yolov5", "yolov8", "yolox"] = Field(
+        description="output layout: yolov5 (1, N, 5+C), yolov8 (1, 4+C, N), yolox (1, N, 5+C) undecoded"
+    )
+    score_threshold: float = Field(default=0.3, gt=0.0, le=1.0, allow_inf_nan=False)
+    nms_iou: float = Field(default=0.45, gt=0.0, le=1.0, allow_inf_nan=False, description="per class")
+    classes: list[ClassLabel] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=1000,
+        description="keep only these classes (names through the camera's labels, or ids); None: all",
+    )
+    max_boxes: int = Field(default=300, ge=1, le=2000, description="per image, best scores first")
+    threads: int = Field(default=1, ge=1, le=64, description="onnxruntime intra-op threads")
+    queue_images: int = Field(
+        default=2, ge=1, le=100, description="images waiting; a newer one drops the oldest (counted)"
+    )
+    max_image_bytes: int = Field(
+        default=32 * MIB, ge=64 * 1024, le=1024 * MIB, description="larger image payloads are rejected"
+    )
+
+
 class CameraConfig(StrictModel):
     """One camera of the RSU. Coverage (where the calibration vehicle is in view) is a polygon, or a circle
     around the approximate position; without either it is learned from the first accepted calibration."""
@@ -86,6 +120,14 @@ class CameraConfig(StrictModel):
     )
     coverage_polygon: list[GeoPoint] | None = Field(
         default=None, min_length=3, max_length=256, description="area of the road in view (WGS84 vertices)"
+    )
+    labels: dict[ClassId, ClassName] | None = Field(
+        default=None,
+        max_length=1001,
+        description="the detector's class id -> name (e.g. COCO's 2: car); None: ids are toolbox ids",
+    )
+    detector: DetectorConfig | None = Field(
+        default=None, description="run this ONNX detector on the camera's images (no bus detections needed)"
     )
     detector_cert_common_names: list[CommonName] | None = Field(
         default=None,
@@ -172,6 +214,10 @@ class StorageConfig(StrictModel):
         default=20 * GIB, ge=16 * MIB, le=2**50, description="recordings kept, total"
     )
     retention_s: float = Field(default=7 * 86_400.0, ge=60.0, le=3650 * 86_400.0, allow_inf_nan=False)
+    foxglove_views: bool = Field(
+        default=True,
+        description="also record Foxglove views: LocationFix, ImageAnnotations, FrameTransform, camera info",
+    )
 
 
 class IngestConfig(StrictModel):

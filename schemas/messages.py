@@ -2,12 +2,23 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from typing import Annotated, NotRequired
 
 from pydantic import ConfigDict, Field, TypeAdapter
 from typing_extensions import TypedDict
 
-from schemas.common import Box, Finite, Identifier, PixelCoord, StampNs, StrictModel
+from schemas.common import (
+    Box,
+    ClassId,
+    ClassName,
+    Finite,
+    Identifier,
+    PixelCoord,
+    StampNs,
+    StrictModel,
+    class_name,
+)
 
 MAX_BOXES_PER_FRAME = 2000
 
@@ -23,14 +34,15 @@ class DetectionFrame(StrictModel):
 # The bus path (daemon ingest, ~20,000 messages/s on one core) only needs to know that a DetectionFrame is
 # valid, plus its camera_id and stamp_ns; building 30 frozen Box models per frame is most of its cost. These
 # mirror DetectionFrame and Box field for field (tests/schemas/test_models.py checks that both accept exactly
-# the same payloads); only Box's x1 < x2, y1 < y2 check is done in check_detection_frame below.
+# the same payloads); only Box's x1 < x2, y1 < y2 check is done in check_detection_frame below. `cls` is a
+# plain union here (validated in Rust), the model's tagged one only improves its error messages.
 class _BoxFields(TypedDict):
     __pydantic_config__ = ConfigDict(extra="forbid", allow_inf_nan=False)  # type: ignore[misc]
     x1: PixelCoord
     y1: PixelCoord
     x2: PixelCoord
     y2: PixelCoord
-    cls: NotRequired[Annotated[int, Field(ge=0, le=1000)]]
+    cls: NotRequired[ClassId | ClassName]
     score: NotRequired[Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]]
 
 
@@ -51,15 +63,41 @@ def check_detection_frame(raw: bytes | str) -> tuple[str, int, int]:
     Raises the same pydantic.ValidationError as DetectionFrame would: on any failure the payload is validated
     again by the model itself, so the error (and its field names) is always the model's.
     """
+    camera_id, stamp_ns, boxes = check_detection_frame_boxes(raw)
+    return camera_id, stamp_ns, len(boxes)
+
+
+def check_detection_frame_boxes(raw: bytes | str) -> tuple[str, int, Sequence[Mapping[str, object]]]:
+    """check_detection_frame, returning the validated boxes (x1, y1, x2, y2 px; cls, score when given) as
+    read-only mappings instead of their number: what the recorder draws, at no extra parsing."""
     try:
         fields = _DETECTION_FRAME_FIELDS.validate_json(raw, strict=True)
-        boxes = fields.get("boxes", ())
+        boxes = fields.get("boxes", [])
         if all(box["x2"] > box["x1"] and box["y2"] > box["y1"] for box in boxes):
-            return fields["camera_id"], fields["stamp_ns"], len(boxes)
+            return fields["camera_id"], fields["stamp_ns"], boxes
     except ValueError:  # pydantic's ValidationError included; the model says what exactly is wrong
         pass
     frame = DetectionFrame.model_validate_json(raw, strict=True)
-    return frame.camera_id, frame.stamp_ns, len(frame.boxes)  # only reached if the two ever disagree
+    # only reached if the two ever disagree
+    return frame.camera_id, frame.stamp_ns, [box.model_dump() for box in frame.boxes]
+
+
+def apply_labels(frames: Sequence[DetectionFrame], labels: Mapping[int, str] | None) -> list[DetectionFrame]:
+    """Frames with every integer class the camera's label map names replaced by that name (lower case);
+    other boxes and frames are returned as they are (the same objects)."""
+    if not labels:
+        return list(frames)
+    named = []
+    for frame in frames:
+        if not any(isinstance(box.cls, int) and box.cls in labels for box in frame.boxes):
+            named.append(frame)
+            continue
+        boxes = [
+            box.model_copy(update={"cls": class_name(box.cls, labels)}) if isinstance(box.cls, int) else box
+            for box in frame.boxes
+        ]
+        named.append(frame.model_copy(update={"boxes": boxes}))
+    return named
 
 
 class V2xAccuracies(StrictModel):

@@ -144,6 +144,9 @@ class JobSummary(StrictModel):
     finished_ns: StampNs | None = None
     duration_s: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
     verdict: Verdict | None = None
+    report: str | None = Field(
+        default=None, max_length=4096, description="the job's HTML report on the RSU (history/*.html)"
+    )
 
 
 class CalibrationStatus(StrictModel):

@@ -355,3 +355,16 @@ def test_bad_local_frame_options_are_refused_by_name(
 def test_a_local_frame_does_not_apply_to_a_recording(carla: Scene, tmp_path: Path) -> None:
     args = [*carla.common(), "--mcap", *carla.files("recording.mcap"), "--frame", "local"]
     _bad_input(_rsucal(args, tmp_path / "out.json"), "--frame", "WGS84")
+
+
+def test_report_re_runs_a_local_frame_result_in_its_frame(
+    carla: Scene, local_poses: Path, tmp_path: Path
+) -> None:
+    run = _rsucal(_local_args(carla, local_poses, "--frame", "local"), tmp_path / "local.json")
+    assert run.code == cli.EXIT_OK, run.stdout + run.stderr
+    args = ["report", str(run.out), "--vehicle", *carla.files("vehicle.yaml")]
+    args += ["--detections", *carla.files("detections.yaml"), "--poses", str(local_poses)]
+    report = _rsucal([*args, "--out", str(tmp_path / "report")])
+    assert report.code == cli.EXIT_OK, report.stdout + report.stderr
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert "no lat/lon" in html

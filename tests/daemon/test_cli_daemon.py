@@ -18,6 +18,9 @@ def _example(tmp_path: Path) -> dict[str, object]:
     data = yaml.safe_load(EXAMPLE.read_text())
     data["storage"]["state_dir"] = str(tmp_path / "state")
     data["zenoh"] = {"listen": [f"tcp/127.0.0.1:{free_port()}"]}
+    # The example's detector needs the site's own model file: off here.
+    for camera in data["cameras"]:
+        camera["detector"] = None
     return data
 
 
@@ -69,3 +72,17 @@ def test_endpoint_in_use_exits_2_naming_it(tmp_path: Path, capsys: pytest.Captur
         code, err = _run(tmp_path, data, capsys)
     assert code == 2
     assert endpoint in err, err
+
+
+def test_relative_paths_are_relative_to_the_config_file(tmp_path: Path) -> None:
+    from daemon.cli import _resolve_relative_paths
+    from pipeline.loaders import load_daemon_config
+
+    data = yaml.safe_load(EXAMPLE.read_text())
+    path = tmp_path / "etc" / "rsu.yaml"
+    path.parent.mkdir()
+    path.write_text(yaml.safe_dump(data))
+    config = _resolve_relative_paths(load_daemon_config(path), path.parent)
+    detector = config.camera("west-arm").detector
+    assert detector is not None and detector.model == tmp_path / "etc" / "models" / "vehicles.onnx"
+    assert config.camera("west-junction").detector is None

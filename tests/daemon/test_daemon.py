@@ -294,7 +294,15 @@ def test_sigterm_finishes_the_recording_and_exits(
     with open(files[0].path, "rb") as stream:
         summary = make_reader(stream).get_summary()  # a finished file has a summary section
     assert summary is not None and summary.statistics is not None
-    assert summary.statistics.message_count == len(sent)
+    # Every message received, once on its raw channel and once as its Foxglove view (storage.foxglove_views).
+    per_schema: dict[str, int] = {}
+    for channel_id, count in summary.statistics.channel_message_counts.items():
+        name = summary.schemas[summary.channels[channel_id].schema_id].name
+        per_schema[name] = per_schema.get(name, 0) + count
+    assert per_schema["rsucal.DetectionFrame"] + per_schema["rsucal.V2xPosition"] == len(sent)
+    assert per_schema["foxglove.ImageAnnotations"] == per_schema["rsucal.DetectionFrame"]
+    assert per_schema["foxglove.LocationFix"] == per_schema["rsucal.V2xPosition"]
+    assert summary.statistics.message_count == 2 * len(sent)
 
 
 def test_a_dead_thread_stops_the_daemon_with_its_reason(sim: SimulationResult, tmp_path: Path) -> None:

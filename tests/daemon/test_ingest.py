@@ -173,6 +173,12 @@ DETECTION_CASES: list[tuple[str, Inbound, str, str]] = [
     ("extra_field", det(_edit(frame_payload(), color="red")), "json", "color: Extra inputs"),
     ("missing_field", det(b'{"camera_id": "c1", "boxes": []}'), "json", "stamp_ns: Field required"),
     ("nan_score", det(frame_payload().replace(b'"score":1.0', b'"score":NaN', 1)), "json", "boxes.0.score"),
+    (
+        "bad_class_name",
+        det(frame_payload().replace(b'"cls":4', b'"cls":"4x4!"', 1)),
+        "json",
+        f"{DET_KEY}: boxes.0.cls: class name '4x4!' must be 1-32 letters",
+    ),
     ("unknown_camera", det(frame_payload("c9"), key="rsu/r1/camera/c9/detections"), "unknown_camera", "'c9'"),
     ("camera_mismatch", det(frame_payload("c2")), "camera_mismatch", "camera_id = 'c2'"),
 ]
@@ -194,6 +200,19 @@ def test_bad_detection_is_counted_warned_and_the_next_good_one_decoded(
     good = h.decoder.decode(det(frame_payload(stamp_ns=T0 + 1)))
     assert isinstance(good, DetectionsIn)
     assert h.count("detections.received") == 2 and h.count("detections.accepted") == 1
+
+
+def test_class_names_and_ids_are_accepted_as_sent() -> None:
+    h = make_harness()
+    payload = (
+        frame_payload()
+        .replace(b'"cls":4', b'"cls":"car"', 1)
+        .replace(b'"cls":4', b'"cls":"traffic light"', 1)
+    )
+    item = h.decoder.decode(det(payload))
+    assert isinstance(item, DetectionsIn) and item.boxes == 3
+    assert item.payload == payload  # recorded as received
+    assert [box["cls"] for box in json.loads(item.payload)["boxes"]] == ["car", "traffic light", 4]
 
 
 def test_size_is_checked_before_parsing() -> None:

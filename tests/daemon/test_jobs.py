@@ -7,12 +7,14 @@ logged it; the job calibrates its first camera.
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import dataclasses
 import math
 import multiprocessing
 import os
 import pickle
+import re
 import signal
 import subprocess
 import sys
@@ -24,6 +26,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from helpers import wait_until
@@ -225,6 +228,63 @@ def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None
     assert result.verdict.reasons == ["no calibration-vehicle poses in the data window"]
     assert other_station.detections == len(scene.sim.detections[scene.spec.camera_id])
     assert other_station.poses == 0
+
+
+def _embedded_pngs(html_text: str) -> list[np.ndarray]:
+    """Every data:image/png figure of a report, decoded (an image that does not decode fails here)."""
+    images = []
+    for encoded in re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", html_text):
+        image = cv2.imdecode(np.frombuffer(base64.b64decode(encoded), np.uint8), cv2.IMREAD_COLOR)
+        assert image is not None and image.shape[0] > 100 and image.shape[1] > 100
+        images.append(image)
+    return images
+
+
+def test_job_writes_its_report_beside_the_result(scene: Scene, tmp_path: Path) -> None:
+    history = tmp_path / "cameras" / scene.spec.camera_id / "history"
+    outcome = run_job(dataclasses.replace(scene.spec, report_dir=str(history), track_workers=1))
+    result = _result_of(outcome)
+    assert result.verdict.is_accepted
+    expected = history / f"{CREATED_AT_NS:019d}-{result.result_id}.html"
+    assert outcome.report_path == str(expected)
+    # Drawn on a thread of the worker after the answer is returned (the result is not held back for it).
+    wait_until(expected.exists, timeout_s=60.0)
+    text = expected.read_text(encoding="utf-8")
+    assert "Accepted: every validation gate passed" in text
+    assert result.result_id in text and "http" not in text.replace("http-equiv", "")  # nothing fetched
+    # Overlays (one per drive-past), map, distance, residuals, hypotheses, uncertainty.
+    assert result.quality is not None
+    assert len(_embedded_pngs(text)) == result.quality.traversals + 5
+    assert [p.name for p in history.iterdir()] == [expected.name]  # no temporary file left behind
+
+
+def test_a_report_that_cannot_be_drawn_says_why(
+    scene: Scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from daemon import report
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("no fonts on this RSU")
+
+    monkeypatch.setattr(report, "write_report", broken)
+    outcome = run_job(dataclasses.replace(scene.spec, report_dir=str(tmp_path), track_workers=1))
+    result = _result_of(outcome)
+    assert outcome.report_path is not None
+    page = Path(outcome.report_path)
+    wait_until(page.exists, timeout_s=60.0)
+    text = page.read_text(encoding="utf-8")
+    assert "the figures could not be drawn: RuntimeError: no fonts on this RSU" in text
+    assert result.result_id in text and "Accepted: every validation gate passed" in text
+
+
+def test_a_report_that_cannot_be_written_never_fails_the_job(scene: Scene, tmp_path: Path) -> None:
+    blocker = tmp_path / "history"
+    blocker.write_text("a file where the history directory should be")
+    outcome = run_job(dataclasses.replace(scene.spec, report_dir=str(blocker), track_workers=1))
+    assert _result_of(outcome).verdict.is_accepted
+    assert outcome.report_path is None
+    [note] = [n for n in outcome.stage_notes if n.startswith("report not written: ")]
+    assert str(blocker) in note
 
 
 @pytest.mark.parametrize(

@@ -24,7 +24,10 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from helpers import free_port, wait_until
+from mcap.reader import make_reader
 
 from daemon.bus import (
     NO_CALIBRATION_YET,
@@ -40,6 +43,7 @@ from daemon.bus import (
 )
 from daemon.clock import ScaledClock
 from daemon.demo import BusMessage, demo_config, publish_messages, simulation_messages
+from daemon.foxglove import transform_key
 from daemon.jobs import JobOutcome, JobSpec, new_job_id
 from daemon.main import Daemon, DaemonEvent
 from daemon.recording import detections_key, v2x_key
@@ -720,3 +724,70 @@ def test_next_drive_past_reverifies_the_camera(
         if client is not None:
             client.close()  # type: ignore[no-untyped-call]
         daemon.stop()
+
+
+def test_results_reach_foxglove_on_the_bus_and_in_the_recording(
+    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path
+) -> None:
+    """An accepted result is put as foxglove.FrameTransform on .../calibration/transform and recorded with
+    its transform, origin, camera info and JSON; a refused one is recorded as JSON only."""
+    state_dir = tmp_path / "state"
+    transforms: list[tuple[str, bytes, str]] = []
+    with _open_site(sim, messages[0].stamp_ns, state_dir) as site:
+        camera_id = site.config.cameras[0].camera_id
+        camera = Camera(site, camera_id, camera_id)
+        subscriber = site.client.declare_subscriber(
+            transform_key(site.config.rsu_id, "*"),
+            lambda s: transforms.append((str(s.key_expr), s.payload.to_bytes(), str(s.encoding))),
+        )
+        try:
+            wait_until(lambda: camera.status() is not None, timeout_s=10)  # the subscription has arrived
+            accepted = camera.truth("accepted")
+            camera.finish(accepted)
+            camera.published(1)
+            wait_until(lambda: len(transforms) == 1, timeout_s=10)
+            refused = _displaced(
+                accepted,
+                "refused",
+                camera.now_ns(),
+                shift_east_m=MOVED_SHIFT_M,
+                verdict=Verdict(status="refused", reasons=REFUSAL_REASONS),
+            )
+            camera.finish(refused)
+            wait_until(lambda: camera.status().last_job is not None, timeout_s=10)
+            wait_until(
+                lambda: [r.result_id for r in camera.history()] == ["accepted", "refused"], timeout_s=10
+            )
+        finally:
+            subscriber.undeclare()  # type: ignore[no-untyped-call]
+    # Only the accepted result is on the bus as a transform, placing the camera where the truth has it.
+    [(key, payload, encoding)] = transforms
+    assert key == transform_key(site.config.rsu_id, camera_id)
+    assert encoding == "application/protobuf;foxglove.FrameTransform"
+    message = FrameTransform.FromString(payload)
+    assert message.parent_frame_id == accepted.frame.crs
+    assert message.child_frame_id == f"rsu/{site.config.rsu_id}/camera/{camera_id}"
+    assert accepted.camera_position is not None
+    np.testing.assert_allclose(
+        [message.translation.x, message.translation.y, message.translation.z],
+        accepted.camera_position.utm,
+        atol=1e-6,
+    )
+    # The stopped daemon's recording holds both results and the accepted one's Foxglove views.
+    topics: dict[str, list[tuple[str, bytes]]] = {}
+    for path in sorted((state_dir / "recordings").glob("*.mcap")):
+        with open(path, "rb") as stream:
+            for schema, channel, msg in make_reader(stream).iter_messages():
+                assert schema is not None
+                topics.setdefault(channel.topic, []).append((schema.name, msg.data))
+    prefix = f"rsu/{site.config.rsu_id}/camera/{camera_id}/calibration"
+    results = [decode_json(CalibrationResult, data) for _, data in topics[prefix]]
+    assert [r.result_id for r in results] == ["accepted", "refused"]
+    [(schema_name, data)] = topics[f"{prefix}/transform"]
+    assert schema_name == "foxglove.FrameTransform" and FrameTransform.FromString(data) == message
+    [(schema_name, data)] = topics[f"{prefix}/camera_info"]
+    assert schema_name == "foxglove.CameraCalibration"
+    assert CameraCalibration.FromString(data).width == accepted.intrinsics.width
+    [(schema_name, data)] = topics[f"{prefix}/origin"]
+    origin = FrameTransform.FromString(data)
+    assert [origin.translation.x, origin.translation.y, origin.translation.z] == list(accepted.frame.origin)

@@ -7,12 +7,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from daemon import recording
+from daemon import foxglove, recording
 from daemon.recording import (
     MCAP_MAGIC,
     SIM_DETECTION_LATENCY_NS,
@@ -32,7 +34,8 @@ from pipeline.loaders import (
     load_toolbox_poses,
     load_vehicle,
 )
-from schemas.common import Box
+from schemas.common import Box, CameraIntrinsics
+from schemas.files import GroundTruth, GroundTruthFrame
 from schemas.messages import DetectionFrame, V2xPosition
 from sim.files import write_simulation_files
 from sim.simulate import SimulationResult, simulate
@@ -248,27 +251,75 @@ class _FakeSimulation:
     """The SimulationResult fields write_simulation_mcap reads (the simulator is another module)."""
 
     rsu_id: str
+    station_id: int
     detections: dict[str, list[DetectionFrame]]
     v2x: list[V2xPosition]
+    ground_truth: dict[str, GroundTruth]
+
+
+def _truth(camera_id: str, frames: list[DetectionFrame]) -> GroundTruth:
+    """Ground truth naming the last box of every frame that has one as the calibration vehicle's."""
+    return GroundTruth(
+        camera_id=camera_id,
+        crs="EPSG:32632",
+        origin=(0.0, 0.0, 0.0),
+        R=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+        t_utm=(0.0, 0.0, 0.0),
+        t_local=(0.0, 0.0, 0.0),
+        camera_position_utm=(0.0, 0.0, 0.0),
+        intrinsics=CameraIntrinsics(width=640, height=480, fx=500.0, fy=500.0, cx=320.0, cy=240.0),
+        station_id=99,
+        traversals=1,
+        frames=[
+            GroundTruthFrame(stamp_ns=f.stamp_ns, calib_box=len(f.boxes) - 1 if f.boxes else None)
+            for f in frames
+        ],
+    )
 
 
 def test_write_simulation_mcap_in_log_time_order(tmp_path: Path) -> None:
+    detections = {"a": [_frame("a", i) for i in range(10)], "b": [_frame("b", i) for i in range(0, 10, 2)]}
     sim = _FakeSimulation(
         rsu_id="sim-rsu",
-        detections={"a": [_frame("a", i) for i in range(10)], "b": [_frame("b", i) for i in range(0, 10, 2)]},
-        v2x=[_v2x(99, i) for i in range(10)],
+        station_id=99,
+        detections=detections,
+        v2x=[*(_v2x(99, i) for i in range(10)), _v2x(7, 11)],
+        ground_truth={"a": _truth("a", detections["a"])},
     )
     path = write_simulation_mcap(sim, tmp_path / "sim.mcap")  # type: ignore[arg-type]
+    annotated: dict[str, list[ImageAnnotations]] = {}
+    fixes: dict[str, list[LocationFix]] = {}
     with open(path, "rb") as stream:
         log_times = []
-        for _, channel, message in make_reader(stream).iter_messages(log_time_order=False):  # file order
+        for schema, channel, message in make_reader(stream).iter_messages(log_time_order=False):  # file order
             latency = SIM_V2X_LATENCY_NS if channel.topic.startswith("v2x/") else SIM_DETECTION_LATENCY_NS
             assert message.log_time == message.publish_time + latency
             log_times.append(message.log_time)
-    assert log_times == sorted(log_times) and len(log_times) == 25
+            assert schema is not None
+            if schema.name == "foxglove.ImageAnnotations":
+                annotated.setdefault(channel.topic, []).append(ImageAnnotations.FromString(message.data))
+            elif schema.name == "foxglove.LocationFix":
+                fixes.setdefault(channel.topic, []).append(LocationFix.FromString(message.data))
+    assert log_times == sorted(log_times) and len(log_times) == 2 * (10 + 5 + 11)
     recording = read_recording(path)
     assert recording.rsu_id == "sim-rsu"
     assert recording.detections == sim.detections and recording.v2x == sim.v2x
+    # Every frame has its view, with every box; the truth's vehicle box (camera a only) in its own colour.
+    for camera_id, frames in detections.items():
+        views = annotated[f"rsu/sim-rsu/camera/{camera_id}/detections/annotations"]
+        assert [v.timestamp.ToNanoseconds() for v in views] == [f.stamp_ns for f in frames]
+        for frame, view in zip(frames, views, strict=True):
+            assert len(view.points) == len(frame.boxes)
+            colors = [(p.outline_color.r, p.outline_color.g, p.outline_color.b) for p in view.points]
+            vehicle = [c == pytest.approx(foxglove.VEHICLE_BOX_RGBA[:3]) for c in colors]
+            assert sum(vehicle) == (1 if camera_id == "a" and frame.boxes else 0)
+            if camera_id == "a" and frame.boxes:
+                last = frame.boxes[-1]
+                corners = [(p.x, p.y) for p in view.points[-1].points]
+                assert vehicle[-1] and corners[0] == (last.x1, last.y1) and corners[2] == (last.x2, last.y2)
+    assert [f.latitude for f in fixes["v2x/cam/99/location"]] == [m.lat for m in sim.v2x[:10]]
+    assert fixes["v2x/cam/99/location"][0].color.r == pytest.approx(foxglove.VEHICLE_STATION_RGBA[0])
+    assert fixes["v2x/cam/7/location"][0].color.r == pytest.approx(foxglove.OTHER_STATION_RGBA[0])
 
 
 # ---------------------------------------------------------------------------------------------- damage

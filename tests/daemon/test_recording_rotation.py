@@ -549,3 +549,87 @@ def test_iter_v2x_replays_since_a_receive_time(
         assert caplog.records == []
         assert len(list(iter_v2x(paths, {7}, 0))) == 200  # read from the start: logged, not raised
     assert "not an MCAP file" in caplog.text
+
+
+@pytest.mark.parametrize("views", [True, False])
+def test_recorder_writes_foxglove_views_beside_the_raw_channels(tmp_path: Path, views: bool) -> None:
+    """With storage.foxglove_views, every detection frame given its boxes gets ImageAnnotations and every
+    V2X position given its message a LocationFix, in the same file; they are not counted as received."""
+    from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+    from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from schemas.messages import check_detection_frame_boxes
+
+    storage = StorageConfig(state_dir=tmp_path, foxglove_views=views)
+    frames = [_frame("north", i, boxes=1 + i % 5) for i in range(20)]
+    fixes = [_v2x(4711, i) for i in range(20)]
+    with RotatingRecorder(tmp_path, RSU, storage, FakeClock()) as recorder:
+        for frame, fix in zip(frames, fixes, strict=True):
+            payload = _payload(frame)
+            _, _, boxes = check_detection_frame_boxes(payload)  # what ingest hands over
+            recorder.write_detections("north", frame.stamp_ns, frame.stamp_ns + LATENCY_NS, payload, boxes)
+            recorder.write_v2x(
+                4711, fix.stamp_ns, fix.stamp_ns + LATENCY_NS, _payload(fix), fix, is_vehicle=True
+            )
+        assert recorder.messages_written == 40
+    [path] = list(tmp_path.glob("*.mcap"))
+    decoded: dict[str, list[object]] = {}
+    factory = DecoderFactory()
+    with open(path, "rb") as stream:
+        for schema, channel, message in make_reader(stream).iter_messages():
+            assert schema is not None
+            if schema.encoding == "protobuf":
+                assert message.log_time in {f.stamp_ns + LATENCY_NS for f in [*frames, *fixes]}
+                # Decoded with the schema stored in the file (mcap's protobuf decoder builds it from the
+                # file's descriptors), then again with the official classes.
+                decoder = factory.decoder_for(channel.message_encoding, schema)
+                assert decoder is not None
+                decoded.setdefault(channel.topic, []).append(decoder(message.data))
+    loaded = read_recording(path)
+    assert loaded.detections == {"north": frames} and loaded.v2x == fixes  # raw channels unchanged
+    if not views:
+        assert decoded == {}
+        return
+    annotations = decoded[f"rsu/{RSU}/camera/north/detections/annotations"]
+    assert [len(a.points) for a in annotations] == [len(f.boxes) for f in frames]  # type: ignore[attr-defined]
+    official = [ImageAnnotations.FromString(a.SerializeToString()) for a in annotations]  # type: ignore[attr-defined]
+    for frame, annotation in zip(frames, official, strict=True):
+        assert annotation.timestamp.ToNanoseconds() == frame.stamp_ns
+        assert [(p.points[0].x, p.points[2].y) for p in annotation.points] == [
+            (b.x1, b.y2) for b in frame.boxes
+        ]
+    locations = [LocationFix.FromString(m.SerializeToString()) for m in decoded["v2x/cam/4711/location"]]  # type: ignore[attr-defined]
+    assert [(f.latitude, f.longitude, f.timestamp.ToNanoseconds()) for f in locations] == [
+        (m.lat, m.lon, m.stamp_ns) for m in fixes
+    ]
+
+
+def test_read_images_finds_the_recorded_image_nearest_each_stamp(tmp_path: Path) -> None:
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    from daemon import foxglove
+    from daemon.recording import image_key, read_images
+
+    path = tmp_path / "images.mcap"
+    with RecordingWriter(path, chunk_size=4096) as writer:
+        for i in range(10):
+            image = CompressedImage(format="jpeg", data=bytes([i]) * 100, frame_id="cam")
+            image.timestamp.FromNanoseconds(T0 + i * 100_000_000)
+            topic = image_key(RSU, "north" if i != 5 else "south")
+            writer.write_raw(
+                topic,
+                foxglove.protobuf_schema("CompressedImage"),
+                image.SerializeToString(),
+                T0,
+                T0 + i * 100_000_000,
+            )
+        writer.write_raw(
+            image_key(RSU, "north"), foxglove.protobuf_schema("CompressedImage"), b"\xff\xff", T0, T0 + 3
+        )
+    wanted = [T0 + 200_000_000 + 400_000, T0 + 500_000_000, T0 + 700_000_000 + 2_000_000, T0]
+    found = read_images([path], RSU, "north", wanted)
+    # Within 1 ms: frame 2 and frame 0 (the undecodable message is skipped); frame 5 is another camera's,
+    # and 2 ms from frame 7 is too far.
+    assert found == {wanted[0]: bytes([2]) * 100, T0: bytes([0]) * 100}
+    assert read_images([path], RSU, "north", []) == {}

@@ -60,6 +60,7 @@ def _status(camera_id: str, now_ns: int) -> CalibrationStatus:
                 finished_ns=now_ns - 12 * S,
                 duration_s=41.2,
                 verdict=Verdict(status="accepted"),
+                report="/var/lib/rsucal/cameras/c1/history/0001-res-c1-7.html",
             ),
             current_result_id="res-c1-7",
             verified_at_ns=now_ns - 12 * S,
@@ -197,7 +198,7 @@ def test_format_status_prints_an_operator_table() -> None:
     )
     lines = format_status(report).splitlines()
     assert lines[0] == "rsucal status at 2026-11-26 10:40:12Z via tcp/127.0.0.1:7447: 1 RSU(s), 2 camera(s)"
-    header, c1, c2, reasons = lines[2:6]
+    header, c1, c1_report, c2, reasons = lines[2:7]
     assert re.split(r"\s{2,}", header) == [
         "RSU", "CAMERA", "STATE", "TRAVERSALS", "LAST JOB", "RESULT", "VERIFIED", "POSITION (LAT, LON, ALT)",
         "ACCURACY",
@@ -210,7 +211,8 @@ def test_format_status_prints_an_operator_table() -> None:
     assert "48.137154, 11.576124, 527.2 m" in c1 and "±0.12 m, ±0.08°" in c1
     assert "collecting  1/3 " in c2 and "1 h 56 min ago, took 3 min 20 s, refused" in c2
     assert reasons.strip() == "c2-job-2 refused: delta_p mean 0.81 m > 0.5 m; one traversal only"
-    health_header, health_row, counters = lines[7:10]
+    assert c1_report.strip() == "c1-job-7 report: /var/lib/rsucal/cameras/c1/history/0001-res-c1-7.html"
+    health_header, health_row, counters = lines[8:11]
     assert health_header.split()[:3] == ["RSU", "ALIVE", "UP"]
     assert health_row.split()[:3] == ["r1", "yes", "3"] and "3 h 12 min" in health_row
     assert "2026-11-26 07:28:12Z" in health_row and "12.3 GiB" in health_row

@@ -89,6 +89,8 @@ def _plain(value: Any) -> Any:
 def test_example_is_a_valid_config() -> None:
     config = decode_mapping(DaemonConfig, yaml.safe_load(EXAMPLE.read_text()))
     assert [camera.camera_id for camera in config.cameras] == ["west-junction", "west-arm"]
+    # One camera with the daemon's own detector on its images, so every detector field is shown.
+    assert config.cameras[1].detector is not None and config.cameras[1].labels is not None
     assert [vehicle.station_id for vehicle in config.vehicles] == [4242]
     # One camera per coverage kind, so both are shown working.
     assert config.cameras[0].coverage_radius_m is not None

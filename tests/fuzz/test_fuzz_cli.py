@@ -168,7 +168,7 @@ HOSTILE_ENDPOINTS = (
     "TCP/127.0.0.1:1",
     "tcp/127.0.0.1:1 tcp/127.0.0.1:2",
 )
-COMMANDS = ("simulate", "evaluate", "calibrate", "daemon", "status", "demo")
+COMMANDS = ("simulate", "evaluate", "calibrate", "daemon", "status", "demo", "report", "access-control")
 STRAY = ("--unknown", "-x", "stray", "--", "--help-me", "--seed=", "--out=")
 
 
@@ -242,6 +242,22 @@ def command_line(draw: st.DrawFn) -> tuple[list[str], bool]:
         if source in ("yaml", "both"):
             choices.append(option("--detections", (f.detections_yaml,), paths, required=True))
             choices.append(option("--poses", (f.poses_yaml,), paths, required=True))
+    elif command == "report":
+        choices = [
+            Choice((draw(st.sampled_from((f.result_json, *paths))),), False),  # the positional RESULT.json
+            option("--vehicle", (f.vehicle_yaml,), paths, required=True),
+            option("--mcap", (f.mcap,), paths, required=True),
+            option("--station-id", ("4242",), HOSTILE_NUMBERS),
+            option("--seed", seeds, HOSTILE_NUMBERS),
+            option("--workers", ("1",), HOSTILE_NUMBERS),
+            option("--out", (str(DIR / "report"),), paths, required=True),
+        ]
+    elif command == "access-control":
+        choices = [
+            option("--config", f.hostile_configs, paths, required=True),
+            option("--base", (f.zenoh_config,), paths, required=True),
+            option("--out", (str(DIR / "acl.json5"),), paths, required=True),
+        ]
     elif command == "daemon":
         choices = [option("--config", f.hostile_configs, paths, required=True)]
     elif command == "status":
@@ -317,11 +333,9 @@ def check(argv: list[str], code: int, stdout: str, stderr: str) -> None:
 @given(case=command_line())
 def test_every_subcommand_with_hostile_arguments(case: tuple[list[str], bool]) -> None:
     argv, hostile = case
-    command = next(
-        token for token in argv if token in ("simulate", "demo", "calibrate", "status", "daemon", "evaluate")
-    )
-    # A fully valid simulate/demo/calibrate is a long run, tested elsewhere (tests/daemon, scenarios).
-    assume(hostile or command in ("evaluate", "status", "daemon"))
+    command = next(token for token in argv if token in COMMANDS)
+    # A fully valid simulate/demo/calibrate/report is a long run, tested elsewhere (tests/daemon, scenarios).
+    assume(hostile or command in ("evaluate", "status", "daemon", "access-control"))
     check(argv, *run(argv))
 
 
@@ -332,6 +346,8 @@ WORDS = st.sampled_from([*COMMANDS, "--help", "-h", "--version", *STRAY, *HOSTIL
 @given(argv=st.lists(st.one_of(WORDS, st.text(max_size=12)), min_size=0, max_size=5))
 def test_random_words_never_reach_a_traceback(argv: list[str]) -> None:
     # Random words rarely form a valid command; the few that would run long are left to the test above.
-    assume(not any(word in ("simulate", "demo", "status", "calibrate", "daemon") for word in argv[:1]))
+    assume(
+        not any(word in ("simulate", "demo", "status", "calibrate", "daemon", "report") for word in argv[:1])
+    )
     assume(not (argv[:1] == ["evaluate"] and len(argv) > 4))
     check(argv, *run(argv))

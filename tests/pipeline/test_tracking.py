@@ -135,6 +135,15 @@ def test_frames_from_detections_sorts_deduplicates_and_converts() -> None:
     assert frames[0].boxes.dtype == np.float64 and frames[0].classes.dtype == np.int64
 
 
+def test_class_names_become_toolbox_ids() -> None:
+    boxes = [
+        Box(x1=0.0, y1=0.0, x2=1.0, y2=1.0, cls=cls)
+        for cls in ("car", "Truck", "van", "bus", "motorcycle", 9)
+    ]
+    (frame,) = frames_from_detections([DetectionFrame(camera_id="cam", stamp_ns=T0_NS, boxes=boxes)])
+    np.testing.assert_array_equal(frame.classes, [4, 5, 6, 7, -1, 9])
+
+
 # ------------------------------------------------------------------------------------------- cost rules
 
 

@@ -33,8 +33,17 @@ from schemas import (
     VehiclePose,
     VehicleProfile,
 )
-from schemas.common import STAMP_NS_MAX, STAMP_NS_MIN, decode_json, decode_mapping, describe_validation_error
-from schemas.messages import MAX_BOXES_PER_FRAME
+from schemas.common import (
+    OTHER_CLASS_ID,
+    STAMP_NS_MAX,
+    STAMP_NS_MIN,
+    class_name,
+    decode_json,
+    decode_mapping,
+    describe_validation_error,
+    toolbox_class_id,
+)
+from schemas.messages import MAX_BOXES_PER_FRAME, apply_labels
 
 FUZZ_EXAMPLES = int(os.environ.get("RSUCAL_FUZZ_EXAMPLES", "200"))
 STAMP = 1_700_000_000_123_456_789  # 2023-11-14, ns
@@ -359,6 +368,44 @@ def test_box_score_and_class_ranges() -> None:
     assert_names(rejection(Box, {**BOX, "cls": -1}), ("cls",))
 
 
+def test_box_class_is_an_id_or_a_name() -> None:
+    assert decode_json(Box, json.dumps({**BOX, "cls": "car"})).cls == "car"
+    assert decode_json(Box, json.dumps({**BOX, "cls": "traffic light"})).cls == "traffic light"
+    assert decode_json(Box, json.dumps({**BOX, "cls": 1000})).cls == 1000
+    # Each error names the field and says what would be right.
+    assert describe_validation_error(_error(Box, {**BOX, "cls": -1})) == (
+        "cls: Value error, class id -1 is outside [0, 1000]"
+    )
+    for name in ("4", "x" * 33, "", "car!"):
+        message = describe_validation_error(_error(Box, {**BOX, "cls": name}))
+        assert message.startswith("cls: Value error, class name ") and "starting with a letter" in message
+    for value, kind in ((4.0, "float"), (True, "bool"), (None, "NoneType"), ([4], "list")):
+        message = describe_validation_error(_error(Box, {**BOX, "cls": value}))
+        assert message == (
+            f"cls: Value error, expected an integer class id or a class name like 'car', got {kind}"
+        )
+
+
+def _error(model: type[Box], data: dict[str, Any]) -> ValidationError:
+    with pytest.raises(ValidationError) as info:
+        decode_json(model, json.dumps(data))
+    return info.value
+
+
+def test_class_names_and_toolbox_ids() -> None:
+    coco = {2: "car", 5: "bus", 7: "Truck"}
+    assert [class_name(label, coco) for label in (2, 7, 0, "Van")] == ["car", "truck", 0, "van"]
+    assert [class_name(label) for label in (2, "car")] == [2, "car"]
+    assert [toolbox_class_id(label) for label in ("car", "TRUCK", "van", "bus", "motorcycle", 9)] == [
+        4,
+        5,
+        6,
+        7,
+        OTHER_CLASS_ID,
+        9,
+    ]
+
+
 @pytest.mark.parametrize(
     "stamp",
     [
@@ -596,7 +643,14 @@ _NUMBERS = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
     st.sampled_from([0, 1, 1000, 1001, -1e5, 1e5, 1e5 + 1, 0.5, 1.0, 1.0000001]),
 )
-_VALUES = st.one_of(_NUMBERS, st.booleans(), st.none(), st.text(max_size=5), st.sampled_from(["1", "4"]))
+# Class names on both sides of the limits: valid names, digits-first, too long, empty, odd characters.
+_CLASS_NAMES = st.one_of(
+    st.sampled_from(["car", "Truck", "traffic light", "e-scooter", "4", "4car", "", "x" * 32, "x" * 33, "!"]),
+    st.text(max_size=6),
+)
+_VALUES = st.one_of(
+    _NUMBERS, st.booleans(), st.none(), st.text(max_size=5), st.sampled_from(["1", "4"]), _CLASS_NAMES
+)
 _COORDS = st.floats(-1e5, 1e5, allow_nan=False)
 _SIZES = st.one_of(st.floats(0.0, 500.0, allow_nan=False), st.sampled_from([0.0, 1e-9, 2e5]))
 
@@ -606,7 +660,7 @@ def _valid_box(draw: st.DrawFn) -> dict[str, Any]:
     x1, y1 = draw(_COORDS), draw(_COORDS)
     box: dict[str, Any] = {"x1": x1, "y1": y1, "x2": x1 + draw(_SIZES), "y2": y1 + draw(_SIZES)}
     if draw(st.booleans()):
-        box["cls"] = draw(st.integers(0, 1000))
+        box["cls"] = draw(st.one_of(st.integers(0, 1000), _CLASS_NAMES))
     if draw(st.booleans()):
         box["score"] = draw(st.floats(0.0, 1.0))
     return box
@@ -657,3 +711,22 @@ def test_fast_detection_check_accepts_exactly_what_the_model_accepts(frame: dict
             check_detection_frame(raw)
     else:
         assert check_detection_frame(raw) == (model.camera_id, model.stamp_ns, len(model.boxes))
+
+
+def test_apply_labels_names_the_mapped_ids_only() -> None:
+    frame = DetectionFrame(
+        camera_id="c",
+        stamp_ns=STAMP_NS_MIN,
+        boxes=[
+            Box(x1=0, y1=0, x2=1, y2=1, cls=2),
+            Box(x1=0, y1=0, x2=1, y2=1, cls=9),
+            Box(x1=0, y1=0, x2=1, y2=1, cls="Van"),
+        ],
+    )
+    untouched = DetectionFrame(
+        camera_id="c", stamp_ns=STAMP_NS_MIN + 1, boxes=[Box(x1=0, y1=0, x2=1, y2=1, cls=9)]
+    )
+    named = apply_labels([frame, untouched], {2: "Car", 7: "truck"})
+    assert [box.cls for box in named[0].boxes] == ["car", 9, "Van"]
+    assert named[1] is untouched
+    assert apply_labels([frame], None)[0] is frame
