@@ -1,9 +1,9 @@
 """The simulated world's own geometry: array aliases, attitudes and camera mounting.
 
-sim/ shares no model with pipeline/ (DESIGN.md): attitudes are built with scipy's Euler sequence, camera
+sim/ shares no model with pipeline/ (docs/design.md): attitudes are built with scipy's Euler sequence, camera
 mountings from a look direction, and the world's conventions are written down here once. Local frame: x east,
 y north, z up (metres, UTM minus the scenario's origin); yaw from grid east counter-clockwise, then pitch,
-then roll (intrinsic z-y'-x''), as DESIGN.md's pose convention.
+then roll (intrinsic z-y'-x''), as docs/design.md's pose convention.
 """
 
 from __future__ import annotations

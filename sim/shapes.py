@@ -1,4 +1,4 @@
-"""Vehicle bodies of the simulated world, in the vehicle frame of DESIGN.md (x forward, y left, z up; the
+"""Vehicle bodies of the simulated world, in the vehicle frame of docs/design.md (x forward, y left, z up; the
 data-sheet box [0, L] x [0, W] x [0, H] with its origin at the rear-right-bottom corner).
 
 This module places bodies in the world from the pose of their reference point (the IMU, `imu_offset` in

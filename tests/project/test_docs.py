@@ -47,11 +47,9 @@ def test_the_paper_is_cited_by_title_and_link() -> None:
 def test_no_source_file_refers_to_the_unshipped_design_file() -> None:
     offenders = [
         str(path.relative_to(ROOT))
-        for folder in ("schemas", "pipeline", "daemon", "bench", "deploy", "docs", "tests")
+        for folder in ("schemas", "pipeline", "sim", "daemon", "bench", "deploy", "docs", "tests")
         for path in (ROOT / folder).rglob("*")
-        # sim/ (and its tests) belong to the simulator's owner: its docstrings are left to that work.
         if path.is_file()
-        and "sim" not in path.relative_to(ROOT).parts
         and path.suffix in (".py", ".md", ".yaml", ".json5", ".json")
         and path != Path(__file__).resolve()
         and (
