@@ -633,6 +633,16 @@ class Daemon:
             self.store.save_camera_state(camera_id, new_state)
         except OSError as err:  # the state in memory still answers queries; the next save may succeed
             log.error("camera %s: saving the camera state failed: %s", camera_id, err)
+        storage = self.config.storage
+        try:
+            # After the state names the new current result: pruning never deletes the current one.
+            self.store.prune_history(
+                camera_id,
+                keep=storage.history_keep,
+                created_before_ns=now_ns - int(storage.history_max_age_s * 1e9),
+            )
+        except OSError as err:  # a full or read-only disk must not stop the supervisor; retried next job
+            log.error("camera %s: pruning the result history failed: %s", camera_id, err)
         with self._lock:
             self._camera_state[camera_id] = new_state
             self._running.pop(camera_id, None)

@@ -157,8 +157,11 @@ class StateStore:
             )
         return newest_accepted
 
-    def prune_history(self, camera_id: str, keep: int = 1000) -> list[Path]:
-        """Delete all but the newest `keep` history entries, never the current result's; returns the deleted.
+    def prune_history(
+        self, camera_id: str, keep: int = 1000, created_before_ns: int | None = None
+    ) -> list[Path]:
+        """Delete all but the newest `keep` history entries, and those created before `created_before_ns`,
+        never the current result's; a job's report goes with its result. Returns the deleted paths.
 
         Also removes temporary files a crash left in the history directory.
         """
@@ -172,7 +175,10 @@ class StateStore:
         removed: list[Path] = []
         with self._lock:
             entries = self.history(camera_id)
-            for entry in entries[: max(0, len(entries) - keep)]:
+            beyond = set(entries[: max(0, len(entries) - keep)])
+            if created_before_ns is not None:
+                beyond.update(e for e in entries if _created_ns_of(e) < created_before_ns)
+            for entry in sorted(beyond):
                 if protected is not None and _result_id_of(entry) == _UNSAFE_IN_NAME.sub("_", protected):
                     continue
                 entry.unlink(missing_ok=True)
@@ -209,6 +215,12 @@ class StateStore:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+
+
+def _created_ns_of(entry: Path) -> int:
+    """created_at_ns from a history entry's name (see history_name); an unparsable name counts as new."""
+    stamp = entry.name[:_STAMP_DIGITS]
+    return int(stamp) if stamp.isdigit() else 2**63
 
 
 def history_name(result: CalibrationResult, suffix: str) -> str:

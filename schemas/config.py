@@ -218,6 +218,16 @@ class StorageConfig(StrictModel):
         default=True,
         description="also record Foxglove views: LocationFix, ImageAnnotations, FrameTransform, camera info",
     )
+    history_keep: int = Field(
+        default=500, ge=1, le=1_000_000, description="results (and their reports) kept per camera in history/"
+    )
+    history_max_age_s: float = Field(
+        default=365 * 86_400.0,
+        ge=3600.0,
+        le=3650 * 86_400.0,
+        allow_inf_nan=False,
+        description="history entries older than this are deleted (the current result never)",
+    )
 
 
 class IngestConfig(StrictModel):

@@ -250,7 +250,7 @@ class Site:
 
 @contextmanager
 def _open_site(
-    sim: SimulationResult, start_ns: int, state_dir: Path, spare_cameras: int = 0
+    sim: SimulationResult, start_ns: int, state_dir: Path, spare_cameras: int = 0, history_keep: int = 500
 ) -> Iterator[Site]:
     """Start the daemon on demo_config, plus `spare_cameras` copies of its first camera (`{id}-{i}`, the
     same view, as if more were mounted on the mast) so tests sharing one daemon each have a fresh camera."""
@@ -259,7 +259,10 @@ def _open_site(
     spares = [
         junction.model_copy(update={"camera_id": f"{junction.camera_id}-{i}"}) for i in range(spare_cameras)
     ]
-    config = DaemonConfig.model_validate({**config.model_dump(), "cameras": [*config.cameras, *spares]})
+    storage = config.storage.model_copy(update={"history_keep": history_keep})
+    config = DaemonConfig.model_validate(
+        {**config.model_dump(), "cameras": [*config.cameras, *spares], "storage": storage.model_dump()}
+    )
     # A real-time clock at the drive's start, so stamps and results look like live ones.
     daemon = Daemon(config, clock=ScaledClock(start_ns, 1.0))
     client: zenoh.Session | None = None
@@ -791,3 +794,28 @@ def test_results_reach_foxglove_on_the_bus_and_in_the_recording(
     [(schema_name, data)] = topics[f"{prefix}/origin"]
     origin = FrameTransform.FromString(data)
     assert [origin.translation.x, origin.translation.y, origin.translation.z] == list(accepted.frame.origin)
+
+
+def test_the_daemon_prunes_each_cameras_history_but_never_its_current_result(
+    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path
+) -> None:
+    # A camera that runs for months must not fill its disk with results: after every job the supervisor
+    # keeps storage.history_keep entries (and none older than storage.history_max_age_s), the current one
+    # always.
+    with _open_site(sim, messages[0].stamp_ns, tmp_path / "state", history_keep=2) as site:
+        camera_id = site.config.cameras[0].camera_id
+        camera = Camera(site, camera_id, camera_id)
+        first = camera.truth("first")
+        camera.finish(first)
+        for n in range(1, 4):
+            camera.finish(
+                _displaced(
+                    first,
+                    f"refused-{n}",
+                    camera.now_ns(),
+                    shift_east_m=2 * MOVED_SHIFT_M,
+                    verdict=Verdict(status="refused", reasons=REFUSAL_REASONS),
+                )
+            )
+        assert [r.result_id for r in camera.history()] == ["first", "refused-2", "refused-3"]
+        assert camera.current_file() == first and camera.answered() == ["first"]

@@ -229,3 +229,19 @@ def test_prune_history_keeps_the_newest_and_the_current(tmp_path: Path) -> None:
     assert kept == [_result(n).result_id for n in (2, 5, 6, 7)]
     assert len(removed) == 4 and stale in removed and not stale.exists()
     assert store.prune_history(CAMERA, keep=3) == []
+
+
+def test_prune_history_by_age_keeps_the_current_and_takes_reports_along(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    for n in range(1, 6):
+        path = store.save_result(_result(n, accepted=n == 1), current=n == 1)
+        path.with_suffix(".html").write_text("report")
+    store.save_camera_state(CAMERA, CameraState(current_result_id=_result(1).result_id))
+    # Entries created before result 4 are old; 1 is current and stays.
+    removed = store.prune_history(CAMERA, keep=100, created_before_ns=_result(4).created_at_ns)
+    kept = [CalibrationResult.model_validate_json(p.read_bytes()).result_id for p in store.history(CAMERA)]
+    assert kept == [_result(n).result_id for n in (1, 4, 5)]
+    assert sorted(p.suffix for p in removed) == [".html", ".html", ".json", ".json"]
+    assert sorted(p.name for p in store.history_dir(CAMERA).glob("*.html")) == sorted(
+        p.with_suffix(".html").name for p in store.history(CAMERA)
+    )
