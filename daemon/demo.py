@@ -263,8 +263,10 @@ class _Replay:
 
 
 def _is_finished(status: CalibrationStatus) -> bool:
+    """A job of the camera finished (accepted or refused). After a refusal the camera's state is
+    `collecting` again (its window still holds the drive-pasts), so the state alone does not tell."""
     return (
-        status.state in ("calibrated", "refused")
+        status.state != "calibrating"
         and status.last_job is not None
         and status.last_job.finished_ns is not None
     )
