@@ -30,3 +30,25 @@ def test_single_traversal_is_explained_and_ends_before_the_timeout(tmp_path: Pat
     assert "north: 1 of 3 traversals counted (trigger.min_traversals)" in text
     assert "gave up" not in text
     assert "FAIL (no job finished; 1 of 3 traversals)" in text
+
+
+@pytest.mark.slow
+def test_a_finished_job_ends_the_demo_whatever_its_verdict(tmp_path: Path) -> None:
+    # In the real world a job may refuse; the camera's state is then `collecting` again (its window still
+    # holds the drive-pasts). The demo must end once every camera's job finished, not wait for --timeout.
+    lines: list[str] = []
+    code = run_demo(
+        preset="sil-north",
+        seed=0,
+        rate=40.0,
+        timeout_s=180.0,
+        state_dir=tmp_path / "state",
+        port=free_port(),
+        out=lines.append,
+    )
+    text = "\n".join(lines)
+    assert "gave up" not in text
+    row = next(line for line in lines if line.startswith("north "))
+    assert "REFUSED (" in row or "PASS" in row or "FAIL (wrong calibration published)" in row
+    # Right or refused keeps the promise (exit 0); a wrong calibration published does not (exit 1).
+    assert code == (1 if "FAIL" in row else 0)
