@@ -357,28 +357,23 @@ class Bus:
 
     def publish_calibration(self, camera_id: str, payload: bytes) -> None:
         """Put a validated CalibrationResult (JSON) on `rsu/{rsu}/camera/{camera_id}/calibration`."""
-        if camera_id not in self._camera_ids:
-            raise KeyError(f"camera_id {camera_id!r} is not configured")
-        session = self._session
-        if session is None or self._state != "open":
-            raise BusError(f"bus of rsu {self._rsu_id} is not open")
-        key = calibration_key(self._rsu_id, camera_id)
-        try:
-            session.put(key, payload, encoding=JSON)
-        except zenoh.ZError as err:
-            raise BusError(f"put {key}: {zenoh_message(err)}") from err
+        self._put_for_camera(camera_id, calibration_key(self._rsu_id, camera_id), payload, JSON)
 
     def publish_transform(self, camera_id: str, payload: bytes) -> None:
         """Put an accepted result as foxglove.FrameTransform (protobuf) on `.../calibration/transform`, so a
         live Foxglove session over Zenoh shows the camera (daemon.foxglove.frame_transform)."""
+        self._put_for_camera(
+            camera_id, transform_key(self._rsu_id, camera_id), payload, FRAME_TRANSFORM_ENCODING
+        )
+
+    def _put_for_camera(self, camera_id: str, key: str, payload: bytes, encoding: zenoh.Encoding) -> None:
         if camera_id not in self._camera_ids:
             raise KeyError(f"camera_id {camera_id!r} is not configured")
         session = self._session
         if session is None or self._state != "open":
             raise BusError(f"bus of rsu {self._rsu_id} is not open")
-        key = transform_key(self._rsu_id, camera_id)
         try:
-            session.put(key, payload, encoding=FRAME_TRANSFORM_ENCODING)
+            session.put(key, payload, encoding=encoding)
         except zenoh.ZError as err:
             raise BusError(f"put {key}: {zenoh_message(err)}") from err
 
