@@ -144,7 +144,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     preview = _output_file("--preview", args.preview, suffix=".png") if args.preview is not None else None
     result = simulate(args.preset, seed=args.seed, ideal=args.ideal)
     try:
-        mcap_path = write_simulation_mcap(result, out / "recording.mcap")
+        mcap_path = write_simulation_mcap(result, out / "recording.mcap", image_every=args.image_every)
         written = [mcap_path, *write_simulation_files(result, out)]
     except OSError as err:
         raise InputError("--out", f"cannot write into {args.out!r}: {err.strerror or err}") from err
@@ -392,6 +392,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--ideal",
         action="store_true",
         help="the first simulator's world: cuboid boxes, no latency, i.i.d. jitter, IMU poses as V2X",
+    )
+    sim.add_argument(
+        "--images",
+        dest="image_every",
+        type=_integer(1, 1000),
+        nargs="?",
+        const=5,
+        default=None,
+        metavar="EVERY",
+        help="also record rendered camera images (foxglove.CompressedImage, JPEG) of every EVERY-th frame "
+        "(default 5: 2 per second at 10 fps); about 30 ms per image",
     )
     sim.set_defaults(func=_cmd_simulate)
 

@@ -540,19 +540,35 @@ def _vehicle_boxes(result: SimulationResult) -> dict[tuple[str, int], int]:
 
 
 def write_simulation_mcap(
-    result: SimulationResult, path: Path, calibrations: Sequence[CalibrationResult] = ()
+    result: SimulationResult,
+    path: Path,
+    calibrations: Sequence[CalibrationResult] = (),
+    image_every: int | None = None,
 ) -> Path:
     """Write a simulation as the daemon would have recorded it, in log-time order; returns `path`.
 
     Every camera's detections are logged 30 ms after their stamp, every V2X message 20 ms after; beside
     each its Foxglove view (ImageAnnotations with the calibration vehicle's box in its own colour, known
-    here from the ground truth; LocationFix). `calibrations` are logged after the last message, with their
-    result channels (write_result_views).
+    here from the ground truth; LocationFix). With `image_every`, every image_every-th frame's rendered
+    camera image too (foxglove.CompressedImage, JPEG, on `.../image`, logged with its detections).
+    `calibrations` are logged after the last message, with their result channels (write_result_views).
     """
     path = Path(path)
     vehicle_boxes = _vehicle_boxes(result)
     # (log_time, kind, stamp, key, schema, payload)
     entries: list[tuple[int, int, int, str, ChannelSchema, bytes]] = []
+    if image_every is not None:
+        from daemon.images import encode_compressed_image
+        from sim.images import render_images
+
+        image_schema = foxglove.protobuf_schema("CompressedImage")
+        for camera_id in result.detections:
+            key = image_key(result.rsu_id, camera_id)
+            for stamp_ns, image in render_images(result, camera_id, image_every):
+                payload = encode_compressed_image(image, stamp_ns, camera_id, "jpeg", jpeg_quality=85)
+                entries.append(
+                    (stamp_ns + SIM_DETECTION_LATENCY_NS, -1, stamp_ns, key, image_schema, payload)
+                )
     for camera_id, frames in result.detections.items():
         key = detections_key(result.rsu_id, camera_id)
         view_key = foxglove.annotations_topic(result.rsu_id, camera_id)

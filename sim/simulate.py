@@ -106,6 +106,16 @@ class SimulatedCamera:
     moves: tuple[CameraPose, ...] = ()
 
 
+@dataclass(frozen=True, eq=False)
+class CameraScene:
+    """What one camera saw, for rendering its images: per (frame, vehicle) instance the frame index (P,),
+    the footprint-centre pose (P, 6) local and the vehicle index (P,) into SimulationResult.bodies."""
+
+    frame: IntArray
+    poses: FloatArray
+    vehicle: IntArray
+
+
 @dataclass(frozen=True)
 class SimulationResult:
     """Everything a simulated scenario produces (see the module docstring)."""
@@ -125,6 +135,8 @@ class SimulationResult:
     traffic_count: int  # other vehicles simulated
     true_poses: FloatArray  # (N, 6) noise-free reference-point poses of the calibration vehicle, local frame
     true_stamps: IntArray  # (N,) the same instants in the camera clock (ns)
+    bodies: tuple[BodyShape, ...] = ()  # every vehicle's body (vehicle 0: the calibration vehicle)
+    scenes: dict[str, CameraScene] = field(default_factory=dict)  # camera_id -> what it saw
     calibration_body: FloatArray = field(
         default_factory=lambda: np.zeros((0, 3))
     )  # (K, 3) about its footprint centre
@@ -371,10 +383,10 @@ def _calibration_body(config: ScenarioConfig, rng: np.random.Generator) -> tuple
 
 def _traffic_bodies(
     vehicles: list[SimVehicle], calib: BodyShape, ideal: bool, rng: np.random.Generator
-) -> tuple[FloatArray, ...]:
-    """Body vertices of every vehicle: the calibration vehicle's, then each other vehicle's (a cuboid of its
+) -> tuple[BodyShape, ...]:
+    """The body of every vehicle: the calibration vehicle's, then each other vehicle's (a cuboid of its
     traffic dimensions in the ideal world, else a shape of a type its class allows, with those dimensions)."""
-    bodies = [_centred(calib)]
+    bodies = [calib]
     for vehicle in vehicles[1:]:
         if ideal:
             shape = cuboid_body(vehicle.length, vehicle.width, vehicle.height)
@@ -385,7 +397,7 @@ def _traffic_bodies(
             shape = draw_body(
                 kind, rng, length_m=vehicle.length, width_m=vehicle.width, height_m=vehicle.height
             )
-        bodies.append(_centred(shape))
+        bodies.append(shape)
     return tuple(bodies)
 
 
@@ -525,7 +537,8 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         rng["traffic"],
     )
     vehicles = [traffic.calibration, *traffic.others]
-    bodies = _traffic_bodies(vehicles, calib_shape, config.ideal, _real_rng(seed, config.name, 1))
+    shapes = _traffic_bodies(vehicles, calib_shape, config.ideal, _real_rng(seed, config.name, 1))
+    bodies = tuple(_centred(shape) for shape in shapes)
     # Camera clock at t = 0: the preset's start plus a seeded offset (< 3 h, ms resolution).
     start_ns = config.start_ns + int(rng["clock"].integers(0, 3 * 3600 * 1000)) * 1_000_000
 
@@ -576,6 +589,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
     occluder_corners = np.stack([o.corners for o in occluders]) if occluders else np.zeros((0, 8, 3))
     detections: dict[str, list[DetectionFrame]] = {}
     truths: dict[str, GroundTruth] = {}
+    scenes: dict[str, CameraScene] = {}
     for index, (camera, camera_rng) in enumerate(zip(cameras, camera_rngs, strict=True)):
         times = _frame_times(traffic.end_s, detector.fps, detector.frame_jitter_s, rng["frames"])
         real_rng = _real_rng(seed, config.name, 100 + index)
@@ -586,6 +600,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         parts: list[RenderedFrames] = []
         calib: _CalibrationTrack | None = None
         segment = _segment_of(times, camera)
+        seen: list[tuple[IntArray, FloatArray, IntArray]] = []
         for n, pose in enumerate(segments):
             first = int(np.searchsorted(segment, n, side="left"))
             last = int(np.searchsorted(segment, n, side="right"))
@@ -606,6 +621,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
                     real,
                 )
             )
+            seen.append((instances.frame + first, instances.poses, instances.owner))
             if seg_calib is not None:
                 shifted = _CalibrationTrack(seg_calib.frames + first, seg_calib.poses, seg_calib.traversal)
                 calib = (
@@ -618,6 +634,11 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
                     )
                 )
         rendered = _join(parts)
+        scenes[camera.camera_id] = CameraScene(
+            np.concatenate([f for f, _, _ in seen]),
+            np.concatenate([p for _, p, _ in seen]),
+            np.concatenate([v for _, _, v in seen]),
+        )
         detections[camera.camera_id] = [
             DetectionFrame(
                 camera_id=camera.camera_id,
@@ -670,6 +691,8 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         traffic_count=len(traffic.others),
         true_poses=true_local,
         true_stamps=true_stamps,
+        bodies=shapes,
+        scenes=scenes,
         calibration_body=bodies[0],
         v2x_mode=v2x_mode,
         is_ideal=config.ideal,
