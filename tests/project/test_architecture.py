@@ -92,3 +92,10 @@ def test_no_test_directory_shadows_a_package_in_spawned_processes() -> None:
     __init__.py) would be found as a namespace package `daemon` before the installed one. So no test file
     lives directly in tests/."""
     assert not sorted((ROOT / "tests").glob("test_*.py"))
+
+
+def test_test_modules_have_unique_names() -> None:
+    """pytest imports test files by their base name (rootdir mode, no __init__.py): two test_x.py in
+    different folders collide and stop the whole run at collection."""
+    names = [path.name for path in (ROOT / "tests").rglob("*.py")]
+    assert sorted({n for n in names if names.count(n) > 1}) == []
