@@ -95,7 +95,8 @@ def test_no_test_directory_shadows_a_package_in_spawned_processes() -> None:
 
 
 def test_test_modules_have_unique_names() -> None:
-    """pytest imports test files by their base name (rootdir mode, no __init__.py): two test_x.py in
-    different folders collide and stop the whole run at collection."""
-    names = [path.name for path in (ROOT / "tests").rglob("*.py")]
+    """pytest imports test files by their base name (rootdir mode, no __init__.py): two test_x.py (or
+    helper modules) in different folders collide and stop the whole run at collection. conftest.py files are
+    pytest's own business."""
+    names = [path.name for path in (ROOT / "tests").rglob("*.py") if path.name != "conftest.py"]
     assert sorted({n for n in names if names.count(n) > 1}) == []
