@@ -20,7 +20,7 @@ import base64
 import html
 import io
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -148,9 +148,12 @@ def _png(figure: Figure) -> bytes:
     return buffer.getvalue()
 
 
-def _overlay_row(index: int, data: _Boxes) -> int:
-    """The box of drive-past `index` to draw: the largest (the vehicle closest to the camera)."""
+def _overlay_row(index: int, data: _Boxes, imaged: Collection[int] = ()) -> int:
+    """The box of drive-past `index` to draw: the largest (the vehicle closest to the camera), among the
+    frames with a recorded image (`imaged`, stamps) when the drive-past has any."""
     rows = np.flatnonzero(data.traversal == index)
+    with_image = rows[np.isin(data.stamps[rows], np.fromiter(imaged, dtype=np.int64, count=len(imaged)))]
+    rows = with_image if len(with_image) else rows
     areas = (data.boxes[rows, 2] - data.boxes[rows, 0]) * (data.boxes[rows, 3] - data.boxes[rows, 1])
     return int(rows[int(np.argmax(areas))])
 
@@ -491,8 +494,13 @@ def render_figures(
     if chosen:
         data = _chosen_boxes(chosen, R, t, camera, vehicle)
         frames_by_stamp = {frame.stamp_ns: frame for frame in detections}
-        rows = {index: _overlay_row(index, data) for index in sorted({int(i) for i in data.traversal})}
-        recorded = images([int(data.stamps[row]) for row in rows.values()]) if images is not None else {}
+        # A recording may hold images of some frames only (`rsucal simulate --images 5`): ask for every frame
+        # of the vehicle, and draw each drive-past on one that has an image.
+        recorded = images([int(stamp) for stamp in data.stamps]) if images is not None else {}
+        rows = {
+            index: _overlay_row(index, data, recorded.keys())
+            for index in sorted({int(i) for i in data.traversal})
+        }
         for index, row in rows.items():
             image = _decoded(recorded, int(data.stamps[row]))
             png[f"overlay-{index + 1}.png"] = _overlay(
