@@ -29,19 +29,10 @@ import numpy as np
 from sim.geometry import BoolArray, FloatArray, IntArray, attitude_matrices
 from sim.lens import Lens
 from sim.presets import DetectorSpec
-from sim.world import UNIT_BOX_CORNERS
 
 Boxes = FloatArray  # (N, 4) x1, y1, x2, y2 pixels
 Mask = BoolArray
 CLASS_CHOICES = np.array([4, 5, 6, 7])
-
-
-def cuboid_corners(center_poses: FloatArray, dims: FloatArray) -> FloatArray:
-    """Body corners (P, 8, 3), footprint RR, FR, FL, RL then the roof (vehicle.body_corners order), of
-    boxes whose footprint centre and attitude are `center_poses` (P, 6) and size `dims` (P, 3) = L, W, H."""
-    R = attitude_matrices(center_poses[:, 3], center_poses[:, 4], center_poses[:, 5])
-    body = (UNIT_BOX_CORNERS[None, :, :] - np.array([0.5, 0.5, 0.0])) * dims[:, None, :]
-    return np.asarray(np.einsum("pij,pkj->pki", R, body) + center_poses[:, None, :3], dtype=np.float64)
 
 
 def may_be_in_view(
@@ -263,10 +254,9 @@ def _project_rows(
     R_cam_from_local: FloatArray,
     t_cam_from_local: FloatArray,
     lens: Lens,
-) -> tuple[list[FloatArray], Mask]:
-    """Projected vertices (K_b, 2) of each given instance row, and whether all of them are imageable."""
+) -> list[FloatArray]:
+    """Projected vertices (K_b, 2) of each given instance row (rows already found projectable)."""
     pixels: list[FloatArray] = [np.zeros((0, 2))] * len(rows)
-    imageable = np.zeros(len(rows), dtype=bool)
     body_of = instances.body[rows]
     for b in np.unique(body_of):
         sel = np.flatnonzero(body_of == b)
@@ -275,12 +265,11 @@ def _project_rows(
         R = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
         world = np.einsum("nij,kj->nki", R, vertices) + poses[:, None, :3]
         cam = world.reshape(-1, 3) @ R_cam_from_local.T + t_cam_from_local
-        flat, flat_ok = lens.project_cam(cam)
+        flat, _ = lens.project_cam(cam)
         px = flat.reshape(len(sel), len(vertices), 2)
         for n, index in enumerate(sel):
             pixels[index] = px[n]
-        imageable[sel] = flat_ok.reshape(len(sel), len(vertices)).all(axis=1)
-    return pixels, imageable
+    return pixels
 
 
 def _raw_boxes(
@@ -678,7 +667,7 @@ def render_frames(
         hidden, visible = hidden_fractions(frame, boxes, distance, is_target, grid=spec.occlusion_grid)
         hidden, visible = hidden[: len(rows)], visible[: len(rows)]
     else:
-        pixels, _ = _project_rows(rows, instances, bodies, R_cam_from_local, t_cam_from_local, camera)
+        pixels = _project_rows(rows, instances, bodies, R_cam_from_local, t_cam_from_local, camera)
         occ_points = occluder_corners.reshape(-1, 8, 3)[occ_ok].reshape(-1, 3)
         occ_pixels, _ = camera.project_cam(occ_points @ R_cam_from_local.T + t_cam_from_local)
         occ_hulls = [_hull(p) for p in occ_pixels.reshape(-1, 8, 2)]

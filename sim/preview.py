@@ -462,7 +462,9 @@ def render_preview(result: SimulationResult, camera_id: str | None = None) -> np
         calib_index = truth_frame.calib_box if truth_frame is not None else None
         if truth_frame is not None and truth_frame.footprint_local is not None:
             footprint = np.asarray(truth_frame.footprint_local, dtype=np.float64)
-            _draw_outline(image, view, footprint, result.calibration_body)
+            body = result.bodies[0]  # the calibration vehicle's, about its footprint centre:
+            vertices = body.vertices - np.array([body.length_m / 2.0, body.width_m / 2.0, 0.0])
+            _draw_outline(image, view, footprint, vertices)
         _draw_boxes(image, frame, calib_index)
         # On top of the highlight: on a distant vehicle the footprint is only a few pixels across.
         if truth_frame is not None and truth_frame.footprint_local is not None:

@@ -137,9 +137,6 @@ class SimulationResult:
     true_stamps: IntArray  # (N,) the same instants in the camera clock (ns)
     bodies: tuple[BodyShape, ...] = ()  # every vehicle's body (vehicle 0: the calibration vehicle)
     scenes: dict[str, CameraScene] = field(default_factory=dict)  # camera_id -> what it saw
-    calibration_body: FloatArray = field(
-        default_factory=lambda: np.zeros((0, 3))
-    )  # (K, 3) about its footprint centre
     v2x_mode: str = "imu"  # "cam": calibrate from the V2X broadcasts; "imu": from `poses`
     is_ideal: bool = True  # the first simulator's world
 
@@ -171,11 +168,6 @@ def _frame_times(end_s: float, fps: float, jitter_s: float, rng: np.random.Gener
         np.clip(rng.normal(0.0, jitter_s, size=count), -3 * jitter_s, 3 * jitter_s) if jitter_s > 0 else 0.0
     )
     return np.asarray(rng.uniform(0.0, period) + period * np.arange(count) + jitter, dtype=np.float64)
-
-
-def _reference_poses(centre: FloatArray, profile: VehicleProfile) -> FloatArray:
-    """Footprint-centre poses (N, 6) -> poses (N, 6) of the reference point (`imu_offset`, the IMU)."""
-    return reference_from_footprint_centre(centre, profile)
 
 
 @dataclass(frozen=True, eq=False)
@@ -216,7 +208,9 @@ def _instances(
         visible = may_be_in_view(middle, np.full(len(rows), radius), R, t, view_bounds)
         if vehicle.is_calibration:
             calib = _CalibrationTrack(
-                rows, _reference_poses(centre, profile), _traversal_labels(times[rows], windows)
+                rows,
+                reference_from_footprint_centre(centre, profile),
+                _traversal_labels(times[rows], windows),
             )
         frames.append(rows[visible])
         poses.append(centre[visible])
@@ -336,17 +330,6 @@ def _real_rng(seed: int, scene: str, stream: int) -> np.random.Generator:
     latencies in every preset)."""
     entropy = [seed, zlib.crc32(scene.encode())]
     return np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=(1000 + stream,)))
-
-
-@dataclass(frozen=True, eq=False)
-class _Bodies:
-    """The vehicles' bodies: vertex arrays (K_i, 3) about each vehicle's footprint centre (vehicle i wears
-    body i), the calibration vehicle's profile as its data sheet gives it, its type and proportions."""
-
-    vertices: tuple[FloatArray, ...]
-    profile: VehicleProfile
-    vehicle_type: str | None
-    proportions: dict[str, float]
 
 
 def _centred(shape: BodyShape) -> FloatArray:
@@ -474,7 +457,7 @@ def _cam_broadcasts(
     period = 1.0 / gnss.fix_rate_hz
     fix_t = np.asarray(rng.uniform(0.0, period) + period * np.arange(math.floor(end_s / period)), np.float64)
     states = sample_vehicle(vehicle, fix_t, ground)
-    reference = _reference_poses(states.center_poses, profile)
+    reference = reference_from_footprint_centre(states.center_poses, profile)
     track = measure_gnss(fix_t, reference[:, :3], reference[:, 3], states.speed, gnss, rng)
     sent = cam_generation(track.t_s, track.position, track.yaw, track.speed_mps, CamSpec())
     east = track.position[sent, 0] + origin.x
@@ -545,7 +528,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
     # --- the vehicle's own pose reports (its IMU, 50 Hz: the toolbox's poses.yaml)
     pose_t = _pose_instants(traffic.end_s, config.pose, rng["pose"])
     states = sample_vehicle(traffic.calibration, pose_t, ground)
-    true_local, true_speed = _reference_poses(states.center_poses, profile), states.speed
+    true_local, true_speed = reference_from_footprint_centre(states.center_poses, profile), states.speed
     reported, reported_speed = _reported_poses(true_local, true_speed, pose_t, config.pose, rng["pose"])
     true_stamps = start_ns + np.round(pose_t * 1e9).astype(np.int64)
     vehicle_stamps = true_stamps + config.pose.clock_offset_ns
@@ -693,7 +676,6 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         true_stamps=true_stamps,
         bodies=shapes,
         scenes=scenes,
-        calibration_body=bodies[0],
         v2x_mode=v2x_mode,
         is_ideal=config.ideal,
     )

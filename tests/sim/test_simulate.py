@@ -18,11 +18,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation as SciRotation
 
 from pipeline.frames import UtmFrame, v2x_from_pose
 from pipeline.vehicle import footprint_corners
 from schemas.common import CameraIntrinsics
-from sim.detector import Instances, cuboid_corners, hidden_fractions, project_boxes, render_frames
+from sim.detector import Instances, hidden_fractions, project_boxes, render_frames
 from sim.errors import SimulationError
 from sim.geometry import camera_position as camera_center
 from sim.geometry import mount_rotation as camera_rotation_from_view
@@ -31,6 +32,18 @@ from sim.presets import PRESETS, DetectorSpec, ScenarioConfig
 from sim.simulate import SimulationResult, simulate
 from sim.traffic import DT_S, simulate_traffic
 from sim.world import GroundSurface, build_network
+
+
+def cuboid_corners(centre_poses: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """Corners (P, 8, 3) of boxes whose footprint centre has the poses (P, 6) = x, y, z, yaw, pitch, roll and
+    whose size is `dims` (P, 3) = L, W, H: the test's own geometry (scipy's z-y-x Euler angles)."""
+    unit = np.array(
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float
+    )
+    body = (unit[None] - [0.5, 0.5, 0.0]) * dims[:, None, :]
+    R = SciRotation.from_euler("ZYX", centre_poses[:, 3:6]).as_matrix()
+    return np.einsum("pij,pkj->pki", R, body) + centre_poses[:, None, :3]
+
 
 CLEAN_DETECTOR = DetectorSpec(frame_jitter_s=0.0015)  # no box jitter, misses or false positives
 
