@@ -128,6 +128,14 @@ class CalibrationResult(StrictModel):
     verdict: Verdict
     change: ChangeInfo | None = None
     provenance: Provenance = Field(default_factory=Provenance)
+    time_offset_ns: int | None = Field(
+        default=None,
+        description=(
+            "estimated vehicle (V2X) clock minus camera stamp of the frame showing the same instant, ns: the "
+            "clock offset plus the detector's latency; what the pipeline subtracts from pose stamps"
+        ),
+    )
+    time_offset_std_ns: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _accepted_has_pose(self) -> CalibrationResult:
@@ -160,6 +168,10 @@ class CalibrationStatus(StrictModel):
     last_job: JobSummary | None = None
     current_result_id: str | None = None
     verified_at_ns: StampNs | None = None
+    time_offset_ns: int | None = Field(
+        default=None, description="the camera's last estimated time offset (CalibrationResult.time_offset_ns)"
+    )
+    time_offset_std_ns: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
     counters: dict[str, int] = Field(default_factory=dict)
     updated_at_ns: StampNs
 
