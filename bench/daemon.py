@@ -1223,7 +1223,7 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
         with lock:
             if event.kind == "job_started":
                 # Called on the ingest thread right after the tracker was found due: its last leave counts.
-                snapshot = holder["daemon"].trackers[event.camera_id].snapshot()
+                snapshot = holder["daemon"].tracker_snapshot(event.camera_id)
                 left_ns = snapshot.last_left_received_ns
                 quiet_end = wall_of(left_ns + quiet_ns) if left_ns is not None else math.nan
                 jobs.append(

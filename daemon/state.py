@@ -42,6 +42,12 @@ class CameraState(StrictModel):
     )
     current_result_id: str | None = None
     last_reasons: list[str] = Field(default_factory=list)
+    time_offset_ns: int | None = Field(
+        default=None,
+        description="the last accepted result's estimated time offset (CalibrationResult.time_offset_ns), "
+        "the prior of the camera's next job",
+    )
+    time_offset_std_ns: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
 
 
 class StateStore:

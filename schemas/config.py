@@ -278,10 +278,18 @@ class GatesConfig(StrictModel):
 
 
 class ChangeConfig(StrictModel):
-    """A new result farther than this from the current one means the camera moved."""
+    """When a re-verification means the camera moved: its shift (position or rotation) from the current result
+    exceeds both the minimum here and `sigmas` standard deviations of the difference of the two results."""
 
-    shift_m: float = Field(default=0.3, gt=0.0, le=100.0, allow_inf_nan=False)
-    shift_deg: float = Field(default=0.5, gt=0.0, le=180.0, allow_inf_nan=False)
+    shift_m: float = Field(default=0.3, gt=0.0, le=100.0, allow_inf_nan=False, description="minimum, m")
+    shift_deg: float = Field(default=0.5, gt=0.0, le=180.0, allow_inf_nan=False, description="minimum, deg")
+    sigmas: float = Field(
+        default=3.0,
+        ge=0.0,
+        le=100.0,
+        allow_inf_nan=False,
+        description="k: the shift must also exceed k std of the difference (both results' covariances)",
+    )
 
 
 class JobsConfig(StrictModel):
