@@ -280,8 +280,17 @@ def _camera_row(
         verified,
         position,
         accuracy,
+        format_time_offset(status.time_offset_ns, status.time_offset_std_ns),
     ]
     return row, notes
+
+
+def format_time_offset(offset_ns: int | None, std_ns: float | None) -> str:
+    """The camera's estimated time offset (vehicle clock minus camera stamp): '+81.0 ms ±2.5', or '-'."""
+    if offset_ns is None:
+        return "-"
+    text = f"{offset_ns / 1e6:+.1f} ms"
+    return text if std_ns is None else f"{text} ±{std_ns / 1e6:.1f}"
 
 
 def _health_row(
@@ -327,7 +336,7 @@ def format_status(report: StatusReport) -> str:
         if report.statuses:
             rows = [_camera_row(s, report.result_for(s.rsu_id, s.camera_id), now_ns) for s in report.statuses]
             headers = ["RSU", "CAMERA", "STATE", "TRAVERSALS", "LAST JOB", "RESULT", "VERIFIED"]
-            lines += _table([*headers, "POSITION (LAT, LON, ALT)", "ACCURACY"], rows)
+            lines += _table([*headers, "POSITION (LAT, LON, ALT)", "ACCURACY", "TIME OFFSET"], rows)
             lines.append("")
         health_by_rsu = {h.rsu_id: h for h in report.health}
         rows = [_health_row(r, health_by_rsu.get(r), r in report.alive, report) for r in rsu_ids]
