@@ -495,11 +495,32 @@ class Daemon:
         started."""
         assert self._runner is not None
         self.recorder.flush()
+        now_ns = self.clock.now_ns()
+        spec = self.job_spec(camera_id, window, job_id, now_ns)
+        if spec is None:
+            log.error("camera %s: job %s has no calibration vehicle or no UTM zone yet", camera_id, job_id)
+            return False
+        runtime = self._cameras[camera_id]
+        runtime.tracker.mark_used(window)
+        with self._lock:
+            runtime.running_job = job_id
+            runtime.job_started_ns = now_ns
+            runtime.pending_window_start_ns = window.start_ns
+            runtime.job_counts["jobs"] += 1
+        future = self._runner.submit(spec)
+        future.add_done_callback(lambda done, spec=spec: self._finished.put((spec, done)))  # type: ignore[misc]
+        text = f"job {job_id} started on {len(window.traversals)} traversal(s)"
+        log.info("camera %s: %s", camera_id, text)
+        self._emit(DaemonEvent("job_started", camera_id, text, len(window.traversals)))
+        return True
+
+    def job_spec(self, camera_id: str, window: JobWindow, job_id: str, now_ns: int) -> JobSpec | None:
+        """What a job of this camera on `window` is given (the recordings on disk now); None without a
+        calibration vehicle for the window's station or a UTM zone."""
         camera = self.config.camera(camera_id)
         vehicle = self.config.vehicle(window.station_id)
         if vehicle is None or self.config.crs is None:
-            log.error("camera %s: job %s has no calibration vehicle or no UTM zone yet", camera_id, job_id)
-            return False
+            return None
         # Files are named by the receive time of their first message, windows are producer stamps. Data can
         # arrive late (a detector's backlog after a link outage), so a file is ruled out only when all its
         # data was received before the window began (its successor started before), never by the end.
@@ -509,11 +530,9 @@ class Daemon:
             for f, following in zip(recordings, [*recordings[1:], None], strict=True)
             if following is None or following.start_ns >= window.start_ns - WINDOW_FILE_MARGIN_NS
         ]
-        now_ns = self.clock.now_ns()
-        runtime = self._cameras[camera_id]
         with self._lock:
-            estimated_offset_ns = runtime.state.time_offset_ns
-        spec = JobSpec(
+            estimated_offset_ns = self._cameras[camera_id].state.time_offset_ns
+        return JobSpec(
             job_id=job_id,
             rsu_id=self.config.rsu_id,
             camera_id=camera_id,
@@ -535,18 +554,6 @@ class Daemon:
             labels=None if camera.labels is None else dict(camera.labels),
             report_dir=str(self.store.history_dir(camera_id)),
         )
-        runtime.tracker.mark_used(window)
-        with self._lock:
-            runtime.running_job = job_id
-            runtime.job_started_ns = now_ns
-            runtime.pending_window_start_ns = window.start_ns
-            runtime.job_counts["jobs"] += 1
-        future = self._runner.submit(spec)
-        future.add_done_callback(lambda done, spec=spec: self._finished.put((spec, done)))  # type: ignore[misc]
-        text = f"job {job_id} started on {len(window.traversals)} traversal(s)"
-        log.info("camera %s: %s", camera_id, text)
-        self._emit(DaemonEvent("job_started", camera_id, text, len(window.traversals)))
-        return True
 
     # ------------------------------------------------------------------------------------------ supervisor
 

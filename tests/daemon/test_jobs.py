@@ -30,7 +30,6 @@ import cv2
 import numpy as np
 import pytest
 from helpers import wait_until
-from scipy.spatial.transform import Rotation
 
 from daemon import jobs
 from daemon.jobs import (
@@ -46,9 +45,8 @@ from daemon.jobs import (
 from daemon.pool import JobRunner
 from daemon.recording import write_simulation_mcap
 from pipeline.calibrate import SOFTWARE_VERSION, PipelineParams
-from schemas.common import CameraIntrinsics
-from schemas.config import ChangeConfig, GatesConfig
-from schemas.results import CalibrationResult, CameraPosition, ReferenceFrame, Verdict
+from schemas.config import GatesConfig
+from schemas.results import CalibrationResult
 from sim.simulate import SimulationResult, simulate
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -47,6 +47,7 @@ from daemon.foxglove import transform_key
 from daemon.jobs import JobOutcome, JobSpec, new_job_id
 from daemon.main import Daemon, DaemonEvent
 from daemon.recording import v2x_key
+from daemon.traversals import JobWindow
 from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
 from pipeline.metrics import result_from_ground_truth
@@ -398,6 +399,36 @@ def test_first_accepted_result_is_published_stored_and_answered(camera: Camera) 
     assert other is not None and other.state == "idle" and other.current_result_id is None
     replies = _calibration(camera.site.client, camera.site.config, other_id)
     assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION_YET in replies.errors[0]
+
+
+def test_the_estimated_time_offset_is_shown_and_becomes_the_next_jobs_prior(camera: Camera) -> None:
+    config = camera.site.config
+    now_ns = camera.now_ns()
+    window = JobWindow(now_ns - 60 * NS_PER_S, now_ns, config.vehicles[0].station_id, ())
+    configured_ns = config.vehicles[0].time_offset_ns
+
+    def prior_ns() -> int:
+        spec = camera.site.daemon.job_spec(camera.camera_id, window, "probe", camera.now_ns())
+        assert spec is not None
+        return spec.time_offset_ns
+
+    # Before any estimate the configured offset is the prior.
+    assert prior_ns() == configured_ns and camera.status().time_offset_ns is None
+    refused = camera.truth("refused").model_copy(
+        update={"verdict": Verdict(status="refused", reasons=REFUSAL_REASONS), "R": None, "t": None}
+    )
+    camera.finish(refused.model_copy(update={"time_offset_ns": configured_ns + 300_000_000}))
+    assert prior_ns() == configured_ns  # a refused fit's estimate is not trusted
+
+    estimated_ns = configured_ns + 87_000_000
+    first = camera.truth("first").model_copy(
+        update={"time_offset_ns": estimated_ns, "time_offset_std_ns": 1.5e6}
+    )
+    camera.finish(first)
+
+    status = camera.status()
+    assert (status.time_offset_ns, status.time_offset_std_ns) == (estimated_ns, 1.5e6)
+    assert prior_ns() == estimated_ns
 
 
 def test_agreeing_result_refreshes_verification_and_publishes_nothing(camera: Camera) -> None:
