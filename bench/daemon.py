@@ -44,9 +44,9 @@ daemon (its inbox), never dropped by the publisher.
              --reverify-seeds seeds (20), in the ideal world unless --reverify-real; per seed the daemon's job
              (run_job, in this process) on drive-pasts 1-4, then on 5-8 alone, the second judged against the
              first by daemon.publication.decide: shift, its std and limit, and whether a move was flagged.
-Targets: ceiling >= 20,000 messages/s with zero loss; no move flagged on a static camera; RSS at the end
-within 10 % of RSS after the first
-simulated hour; quiet-period end -> calibration on the bus <= 10 s. Exit 1 when one fails.
+Targets: ceiling >= 20,000 messages/s with zero loss; RSS at the end within 10 % of RSS after the first
+simulated hour; quiet-period end -> calibration on the bus <= 10 s; no move flagged on a static camera.
+Exit 1 when one fails.
 """
 
 from __future__ import annotations
