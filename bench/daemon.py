@@ -175,7 +175,9 @@ class Site:
     @property
     def keys(self) -> tuple[str, ...]:
         """Bus keys by index: the cameras' detections, then the vehicle's V2X."""
-        return (*(f"rsu/{RSU_ID}/camera/{c}/detections" for c in self.camera_ids), f"v2x/cam/{STATION_ID}")
+        from daemon.keys import detections_key, v2x_key
+
+        return (*(detections_key(RSU_ID, c) for c in self.camera_ids), v2x_key(STATION_ID))
 
     @property
     def loop_s(self) -> float:
@@ -548,7 +550,8 @@ def to_sample(health: Health, pid: int | None) -> Sample:
 
 def query_health(session: zenoh.Session, timeout_s: float = HEALTH_TIMEOUT_S) -> Health | None:
     """The daemon's health over the bus, as any monitoring client reads it."""
-    from daemon.bus import health_key, query
+    from daemon.bus import query
+    from daemon.keys import health_key
     from schemas.common import decode_json
     from schemas.results import Health
 
@@ -1003,8 +1006,9 @@ def run_rss(hours: int, rate: float, divisor: int, trace: bool = False) -> dict[
     tracemalloc runs too (slower): Python-allocated bytes per hour and the lines that grew after hour 1."""
     import tracemalloc
 
-    from daemon.bus import free_loopback_port, query, status_key
+    from daemon.bus import free_loopback_port, query
     from daemon.clock import ScaledClock
+    from daemon.keys import status_key
     from daemon.main import Daemon, DaemonEvent
     from schemas.config import JobsConfig, StorageConfig, TriggerConfig
 
@@ -1202,9 +1206,10 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
     """The `long` preset into a Daemon; per job: quiet-period end -> job start -> result on the bus."""
     import zenoh
 
-    from daemon.bus import calibration_key, free_loopback_port
+    from daemon.bus import free_loopback_port
     from daemon.clock import ScaledClock
     from daemon.demo import demo_config, publish_messages, simulation_messages
+    from daemon.keys import calibration_key
     from daemon.main import Daemon, DaemonEvent
     from schemas.config import JobsConfig
     from sim.simulate import simulate
@@ -1592,7 +1597,8 @@ def run_detector(seconds: float, cameras: int, fps: float) -> dict[str, Any]:
 
     from daemon.bus import client_config, free_loopback_port
     from daemon.detector import OnnxDetector, decode_output, letterbox, network_input, postprocess
-    from daemon.images import decode_compressed_image, encode_compressed_image, image_key
+    from daemon.images import decode_compressed_image, encode_compressed_image
+    from daemon.keys import image_key
     from daemon.main import Daemon
     from schemas.config import DetectorConfig
 

@@ -38,6 +38,7 @@ from daemon.detector import DetectorWorker, ImageRouter, build_workers
 from daemon.foxglove import frame_transform
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
 from daemon.jobs import JobOutcome, JobSpec, new_job_id
+from daemon.keys import parse_detections_key
 from daemon.pool import JobRunner
 from daemon.publication import decide, storing_failed
 from daemon.recording import RotatingRecorder, iter_v2x, list_recordings
@@ -378,8 +379,11 @@ class Daemon:
         bus = self._bus
         if bus is None:
             return
+        parsed = parse_detections_key(key)
+        if parsed is None:
+            return
         try:
-            bus.publish_detections(key.split("/")[3], payload)
+            bus.publish_detections(parsed[1], payload)
         except BusError as err:
             self.counters.add("images.publish_failed")
             log.debug("publishing a detected frame: %s", err)

@@ -24,6 +24,7 @@ import numpy as np
 from pyproj.exceptions import CRSError
 from tqdm import tqdm
 
+from daemon.keys import v2x_key
 from daemon.recording import read_recording
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.errors import InputError
@@ -207,7 +208,7 @@ def _from_mcap(
         try:
             crs = utm_epsg_for(messages[0].lat, messages[0].lon)
         except InputError as err:
-            raise InputError(str(path), f"v2x/cam/{station_id}: {err.detail}") from err
+            raise InputError(str(path), f"{v2x_key(station_id)}: {err.detail}") from err
         notes.append(f"crs {crs}: the UTM zone of the first V2X position (--crs to override)")
     poses, skipped = poses_from_v2x(messages, UtmFrame(crs))
     if skipped:

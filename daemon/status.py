@@ -26,17 +26,14 @@ from pydantic import BaseModel, ValidationError
 from daemon.bus import (
     NO_CALIBRATION_YET,
     BusError,
-    alive_key,
-    calibration_key,
     client_config,
     connect_endpoints,
-    health_key,
     open_session,
     split_replies,
     start_query,
-    status_key,
     zenoh_message,
 )
+from daemon.keys import alive_key, calibration_key, health_key, parse_alive_key, status_key
 from pipeline.errors import InputError
 from schemas.common import decode_json, describe_validation_error
 from schemas.results import CalibrationResult, CalibrationStatus, Health
@@ -170,7 +167,7 @@ def fetch_status(
     health = _decode_all(Health, health_replies.ok, problems)
     for key, answer in health:
         _check_key(key, health_key(answer.rsu_id), problems)
-    alive = sorted({key.split("/")[1] for key, _ in alive_replies.ok if key.count("/") == 2})
+    alive = sorted({rsu for key, _ in alive_replies.ok if (rsu := parse_alive_key(key)) is not None})
     return StatusReport(
         fetched_at_ns=fetched_at_ns,
         endpoints=endpoints,

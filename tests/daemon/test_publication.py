@@ -32,21 +32,17 @@ from mcap.reader import make_reader
 from daemon.bus import (
     NO_CALIBRATION_YET,
     QueryReplies,
-    calibration_key,
     client_config,
     query,
     query_replies,
     split_replies,
     start_query,
-    status_key,
-    trigger_key,
 )
 from daemon.clock import ScaledClock
 from daemon.demo import BusMessage, demo_config, publish_messages, simulation_messages
-from daemon.foxglove import transform_key
 from daemon.jobs import JobOutcome, JobSpec, new_job_id
+from daemon.keys import calibration_key, status_key, transform_key, trigger_key, v2x_key
 from daemon.main import Daemon, DaemonEvent
-from daemon.recording import v2x_key
 from daemon.traversals import JobWindow
 from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
