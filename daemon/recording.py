@@ -50,7 +50,13 @@ from daemon import __version__, foxglove, keys
 from daemon.clock import Clock
 from daemon.foxglove import MessageSchema
 from pipeline.errors import RecordingError
-from schemas.common import decode_json, describe_validation_error
+from schemas.common import (
+    IDENTIFIER,
+    IDENTIFIER_CHARS,
+    IDENTIFIER_MAX_LENGTH,
+    decode_json,
+    describe_validation_error,
+)
 from schemas.config import StorageConfig
 from schemas.messages import DetectionFrame, V2xPosition
 from schemas.results import CalibrationResult
@@ -75,7 +81,6 @@ ZSTD_LEVEL = 1
 SIM_DETECTION_LATENCY_NS = 30_000_000
 SIM_V2X_LATENCY_NS = 20_000_000
 
-_IDENTIFIER = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # schemas.common.Identifier: safe in a Zenoh key
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length (MCAP spec)
 _FOOTER = struct.Struct("<BQQQI")  # head, summary_start, summary_offset_start, summary_crc
 # Message record: head, channel_id u16, sequence u32, log_time u64, publish_time u64, then the payload.
@@ -282,7 +287,7 @@ class RecordingWriter:
 
     def write_detections(self, rsu_id: str, frame: DetectionFrame, received_ns: int) -> None:
         """Log a DetectionFrame on rsu/{rsu_id}/camera/{frame.camera_id}/detections."""
-        if not _IDENTIFIER.match(rsu_id):
+        if not IDENTIFIER.match(rsu_id):
             raise ValueError(f"rsu_id {rsu_id!r} is not a valid key segment ([A-Za-z0-9_.-], 1-64 chars)")
         self.write(keys.detections_key(rsu_id, frame.camera_id), frame, received_ns, frame.stamp_ns)
 
@@ -1205,7 +1210,7 @@ def iter_v2x(
 
 # ---------------------------------------------------------------------------------------------- rotation
 
-_RECORDING_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}-(\d{19,20})\.mcap$")
+_RECORDING_NAME = re.compile(rf"^[{IDENTIFIER_CHARS}]{{1,{IDENTIFIER_MAX_LENGTH}}}-(\d{{19,20}})\.mcap$")
 RETRY_AFTER_ERROR_S = 5.0  # after a failed write, messages are dropped (counted) this long before a new file
 
 
@@ -1281,7 +1286,7 @@ class RotatingRecorder:
     """
 
     def __init__(self, directory: Path, rsu_id: str, storage: StorageConfig, clock: Clock) -> None:
-        if not _IDENTIFIER.match(rsu_id):
+        if not IDENTIFIER.match(rsu_id):
             raise ValueError(f"rsu_id {rsu_id!r} is not a valid key segment ([A-Za-z0-9_.-], 1-64 chars)")
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -1444,7 +1449,7 @@ class RotatingRecorder:
         self.close()
 
     def _detection_key(self, camera_id: str) -> tuple[str, str]:
-        if not _IDENTIFIER.match(camera_id):
+        if not IDENTIFIER.match(camera_id):
             raise ValueError(
                 f"camera_id {camera_id!r} is not a valid key segment ([A-Za-z0-9_.-], 1-64 chars)"
             )

@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from schemas.common import (
+    EPSG_PATTERN,
     CameraIntrinsics,
     ClassId,
     ClassLabel,
@@ -307,7 +308,7 @@ class DaemonConfig(StrictModel):
     rsu_id: Identifier
     crs: str | None = Field(
         default=None,
-        pattern=r"^EPSG:\d{4,5}$",
+        pattern=EPSG_PATTERN,
         description="UTM zone of results; default from the first camera position or V2X message",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
