@@ -4,8 +4,10 @@ Zenoh callbacks only enqueue (key, payload, received_ns). The ingest thread owns
 recorder and the traversal trackers: it decodes, logs, counts traversals and, when a camera is due, flushes
 the recording and hands a job to the job runner (separate processes). The supervisor thread owns the
 results: it stores each finished job atomically, publishes accepted ones and keeps the per-camera status.
-Queryable threads read immutable snapshots only. Shutdown: stop input, drain, finish the MCAP file,
-persist, close the Zenoh session, stop the workers.
+Queryable threads read immutable snapshots only. The camera's state is persisted after every job, so
+shutdown has nothing left to save: close the Zenoh session (no new input, no more queries), stop the
+detectors, let the ingest thread drain the inbox and finish the MCAP file, stop the supervisor, then the
+job workers (a job still running is lost; its window is used again after a restart).
 """
 
 from __future__ import annotations
@@ -234,7 +236,8 @@ class Daemon:
         )
 
     def stop(self) -> None:
-        """Stop input, drain, finish the MCAP file, persist, close the bus and the workers. Idempotent."""
+        """Close the bus, stop the detectors, drain the inbox, finish the MCAP file, stop the job workers
+        (the module docstring says why in this order). Idempotent."""
         if self._bus is not None:
             self._bus.close()  # no new input, no more queries
         # The detectors' frames go through the inbox: stop them before ingest drains it.
@@ -766,6 +769,9 @@ class Daemon:
         counters["recordings.messages_written"] = self.recorder.messages_written
         counters["recordings.messages_dropped"] = self.recorder.messages_dropped
         counters["recordings.files_written"] = self.recorder.files_written
+        bus = self._bus
+        if bus is not None:
+            counters["bus.callback_errors"] = bus.callback_errors  # Zenoh callbacks that raised (a bug)
         files = list_recordings(self.recordings_dir, self.config.rsu_id)
         try:
             free_bytes = shutil.disk_usage(self.state_dir).free

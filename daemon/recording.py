@@ -1,11 +1,12 @@
 """MCAP recordings: the daemon's log of every valid incoming message and the offline/simulated input format.
 
 Layout (docs/design.md): one channel per key expression, message_encoding "json", schema "jsonschema" from the
-pydantic model, log_time = receive ns, publish_time = stamp_ns; chunked, zstd. This is the only module
-that imports mcap. Reading is deliberately forgiving: a truncated or partly corrupted file yields every
-message that can still be proven intact (chunk CRCs), and bad messages are counted, never fatal.
-The daemon records through RotatingRecorder ({rsu_id}-{start_received_ns:019d}.mcap files, rotated by size
-and age, pruned by retention); jobs read a stamp window across files with read_window.
+pydantic model, log_time = receive ns, publish_time = stamp_ns; chunked, zstd. MCAP files are written and
+read here (daemon.main imports mcap only to report its version). Reading is deliberately forgiving: a
+truncated or partly corrupted file yields every message that can still be proven intact (chunk CRCs), and
+bad messages are counted, never fatal. The daemon records through RotatingRecorder
+({rsu_id}-{start_received_ns:019d}.mcap files, rotated by size and age, pruned by retention); jobs read a
+stamp window across files with read_window.
 """
 
 from __future__ import annotations
