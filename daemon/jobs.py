@@ -81,6 +81,9 @@ class JobSpec:
     report_dir: str | None = None
 
 
+VehicleBox = tuple[int, float, float, float, float]  # stamp_ns, x1, y1, x2, y2 (px)
+
+
 @dataclass(frozen=True, slots=True)
 class JobOutcome:
     """What a job returns: a result (accepted or refused) as JSON, or an error; never both."""
@@ -97,6 +100,9 @@ class JobOutcome:
     # the new drive-past, or only the older ones still in the window.
     newest_track_end_ns: int | None = None
     report_path: str | None = None  # the job's HTML report, when written
+    # The calibration vehicle's boxes as an accepted fit identified them: (stamp_ns, x1, y1, x2, y2) of each
+    # box of the chosen group's tracks, camera stamps; the daemon records them as a Foxglove overlay.
+    vehicle_boxes: tuple[VehicleBox, ...] = ()
 
 
 # ---------------------------------------------------------------------------------------------- the job
@@ -353,6 +359,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
             newest_track_end_ns=max((end for _, end in outcome.chosen.track_spans), default=None)
             if outcome.chosen is not None
             else None,
+            vehicle_boxes=_vehicle_boxes(outcome) if result.verdict.is_accepted else (),
         )
     except RsucalError as err:  # RecordingError, InputError, DegenerateGeometry, ShapeError
         return failed(f"{type(err).__name__}: {err}")
@@ -366,6 +373,20 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
         lines = traceback.format_exc().rstrip().splitlines()
         notes.extend(f"traceback: {line}" for line in lines[-_TRACEBACK_LINES:])
         return failed(f"internal error: {type(err).__name__}: {err}")
+
+
+def _vehicle_boxes(outcome: CalibrationOutcome) -> tuple[VehicleBox, ...]:
+    """Every box of the chosen group's tracks, in stamp order: the boxes the fit took for the vehicle's."""
+    if outcome.chosen is None or outcome.diagnostics is None:
+        return ()
+    chosen = set(outcome.chosen.track_ids)
+    boxes = [
+        (int(stamp), float(x1), float(y1), float(x2), float(y2))
+        for track in outcome.diagnostics.tracks
+        if track.track_id in chosen
+        for stamp, (x1, y1, x2, y2) in zip(track.stamps.tolist(), track.boxes.tolist(), strict=True)
+    ]
+    return tuple(sorted(boxes))
 
 
 def _unusable_recording(path: str) -> str | None:

@@ -633,6 +633,14 @@ class Daemon:
             # The recorder belongs to the ingest thread: the result channels are written there.
             recorded = result
             self._inbox.put(lambda: self.recorder.write_result(recorded, self.clock.now_ns()))
+        if decision.kind == "accepted" and outcome.vehicle_boxes:
+            # Now that the fit says which boxes were the calibration vehicle's: a Foxglove overlay of them.
+            boxes = outcome.vehicle_boxes
+
+            def record_vehicle_boxes() -> None:
+                self.recorder.write_vehicle_boxes(camera_id, boxes, self.clock.now_ns())
+
+            self._inbox.put(record_vehicle_boxes)
         if payload is not None and result is not None:
             if self._bus is not None:
                 self._bus.publish_calibration(camera_id, payload)

@@ -1373,6 +1373,27 @@ class RotatingRecorder:
             key = keys.calibration_key(result.rsu_id, result.camera_id)
             self._write_view(key, CalibrationResult, payload, received_ns, received_ns)
 
+    def write_vehicle_boxes(
+        self,
+        camera_id: str,
+        boxes: Sequence[tuple[int, float, float, float, float]],
+        received_ns: int,
+    ) -> int:
+        """Log the calibration vehicle's boxes as a finished job identified them (stamp_ns, x1, y1, x2, y2),
+        one foxglove.ImageAnnotations per frame on .../calibration/annotations, in the vehicle's colour, so
+        that Foxglove shows them over the camera's detections. With views off, nothing; returns the frames
+        written."""
+        if not self._views or not boxes:
+            return 0
+        topic = keys.calibration_annotations_topic(self.rsu_id, camera_id)
+        by_stamp: dict[int, list[tuple[float, float, float, float]]] = {}
+        for stamp_ns, x1, y1, x2, y2 in boxes:
+            by_stamp.setdefault(stamp_ns, []).append((x1, y1, x2, y2))
+        for stamp_ns in sorted(by_stamp):
+            view = foxglove.image_annotations(stamp_ns, (), by_stamp[stamp_ns])
+            self._write_view(topic, foxglove.IMAGE_ANNOTATIONS, view, received_ns, stamp_ns)
+        return len(by_stamp)
+
     def tick(self) -> None:
         """Rotate a file older than rotate_s, else flush when flush_interval_s has passed since the last."""
         writer = self._writer

@@ -205,6 +205,19 @@ def test_job_in_a_spawned_worker_calibrates_sil_west(scene: Scene, warm: Warm) -
     assert outcome.poses == sum(1 for m in sim.v2x if m.station_id == sim.station_id)
     assert outcome.duration_s > 0.0
     assert any(note.startswith("validation: ") for note in outcome.stage_notes)
+    # The boxes the fit took for the calibration vehicle's (the daemon records them as an overlay): the
+    # detector's own boxes of the camera's frames, and the truth's calibration-vehicle box in nearly all.
+    frames = {frame.stamp_ns: frame for frame in sim.detections[spec.camera_id]}
+    truth = {frame.stamp_ns: frame for frame in sim.ground_truth[spec.camera_id].frames}
+    assert len(outcome.vehicle_boxes) > 100
+    assert [b[0] for b in outcome.vehicle_boxes] == sorted(b[0] for b in outcome.vehicle_boxes)
+    hits = 0
+    for stamp_ns, *corners in outcome.vehicle_boxes:
+        detected = [(b.x1, b.y1, b.x2, b.y2) for b in frames[stamp_ns].boxes]
+        assert tuple(corners) in detected
+        index = truth[stamp_ns].calib_box
+        hits += index is not None and detected[index] == tuple(corners)
+    assert hits >= 0.95 * len(outcome.vehicle_boxes), (hits, len(outcome.vehicle_boxes))
 
 
 def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None:
@@ -216,7 +229,7 @@ def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None
     result = _result_of(outcome)
     assert result.verdict.status == "refused"
     assert result.verdict.reasons == ["no calibration-vehicle poses in the data window"]
-    assert (outcome.detections, outcome.poses) == (0, 0)
+    assert (outcome.detections, outcome.poses) == (0, 0) and outcome.vehicle_boxes == ()
     assert result.provenance.window_start_ns == before_any_data.window_start_ns
 
     # Detections, but the station named is not in the recording: no vehicle data either.

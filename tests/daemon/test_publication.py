@@ -24,8 +24,10 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
+from foxglove_check import check_recording
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from helpers import free_port, wait_until
 from mcap.reader import make_reader
 
@@ -40,8 +42,16 @@ from daemon.bus import (
 )
 from daemon.clock import ScaledClock
 from daemon.demo import BusMessage, demo_config, publish_messages, simulation_messages
+from daemon.foxglove import VEHICLE_BOX_RGBA
 from daemon.jobs import JobOutcome, JobSpec, new_job_id
-from daemon.keys import calibration_key, status_key, transform_key, trigger_key, v2x_key
+from daemon.keys import (
+    calibration_annotations_topic,
+    calibration_key,
+    status_key,
+    transform_key,
+    trigger_key,
+    v2x_key,
+)
 from daemon.main import Daemon, DaemonEvent
 from daemon.traversals import JobWindow
 from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
@@ -770,12 +780,29 @@ def test_a_moved_camera_is_flagged_and_replaced_by_a_fit_on_the_new_drive_pasts_
     # Each result holds the pose of its time: the first the camera before the move, the second after.
     assert first.camera_position is not None and second.camera_position is not None
     before, after = np.asarray(truth.camera_position_utm), np.asarray(move.camera_position_utm)
-    assert np.linalg.norm(np.asarray(first.camera_position.utm) - before) < 0.5 * np.linalg.norm(
-        after - before
-    )
-    assert np.linalg.norm(np.asarray(second.camera_position.utm) - after) < 0.5 * np.linalg.norm(
-        after - before
-    )
+    half_move_m = 0.5 * np.linalg.norm(after - before)
+    assert np.linalg.norm(np.asarray(first.camera_position.utm) - before) < half_move_m
+    assert np.linalg.norm(np.asarray(second.camera_position.utm) - after) < half_move_m
+    # After each accepted job the recording shows the boxes it took for the calibration vehicle's, in the
+    # vehicle's colour on .../calibration/annotations; every message of the recordings decodes.
+    topic = calibration_annotations_topic(config.rsu_id, camera_id)
+    overlay: list[ImageAnnotations] = []
+    for path in sorted((state_dir / "recordings").glob("*.mcap")):
+        assert check_recording(path)["foxglove.ImageAnnotations"] > 0
+        with open(path, "rb") as stream:
+            overlay += [
+                ImageAnnotations.FromString(message.data)
+                for _, _, message in make_reader(stream).iter_messages(topics=[topic])
+            ]
+    frames = {frame.stamp_ns: frame for frame in sim.detections[camera_id]}
+    assert len(overlay) > 100
+    for message in overlay:
+        stamp = message.points[0].timestamp
+        detected = {(b.x1, b.y1, b.x2, b.y2) for b in frames[stamp.seconds * NS_PER_S + stamp.nanos].boxes}
+        for points in message.points:
+            assert (points.outline_color.r, points.outline_color.g) == VEHICLE_BOX_RGBA[:2]
+            corners = (points.points[0].x, points.points[0].y, points.points[2].x, points.points[2].y)
+            assert corners in detected
 
 
 def test_results_reach_foxglove_on_the_bus_and_in_the_recording(
