@@ -391,7 +391,8 @@ def test_a_new_traversal_after_a_job_makes_it_due_again(scenes: dict[str, Scene]
         tracker.tick(now_ns + later_s * S)
         assert tracker.due(now_ns + later_s * S) is None
 
-    # The vehicle comes back along the same road (shifted in time): one more traversal re-verifies.
+    # The vehicle comes back along the same road (shifted in time): one more traversal makes a job on all four
+    # due (an uncalibrated camera's; a calibrated one's re-verification needs new ones alone, see below).
     offset_ns = now_ns + 600 * S - scene.samples[0][0]
     again = [(s + offset_ns, e, n) for s, e, n in scene.samples if s < scene.samples[0][0] + 60 * S]
     events = replay(tracker, again, until_ns=again[-1][0] + 60 * S)
