@@ -17,7 +17,7 @@ import time
 from collections.abc import Iterator
 from concurrent.futures import Future
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -60,7 +60,7 @@ from pipeline.metrics import result_from_ground_truth
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult, CalibrationStatus, Verdict
-from sim.simulate import SimulationResult, simulate
+from sim.simulate import SimulationResult, resolve_config, simulate
 
 RATE = 60.0  # time acceleration of the end-to-end tests: the 251 s sil-west drive in ~4 s
 NS_PER_S = 1_000_000_000
@@ -722,21 +722,23 @@ def moved_sim() -> SimulationResult:
     return simulate("moved-camera", 0, ideal=True)
 
 
-def test_a_moved_camera_is_flagged_and_replaced_by_a_fit_on_the_new_drive_pasts_alone(
-    moved_sim: SimulationResult, tmp_path: Path
-) -> None:
-    """Issue 10 part 7 over the bus: calibrated from the first four drive-pasts, knocked (0.4 m, 0.6 deg)
-    after the fourth, the next four are judged on their own: the move is flagged (change.moved) and their
-    result replaces the old one."""
-    sim = moved_sim
-    state_dir = tmp_path / "state"
+@dataclass
+class Drive:
+    """A daemon (min_traversals 4) fed a whole simulated drive over the bus until two jobs finished."""
+
+    config: DaemonConfig
+    camera_id: str
+    finished: list[DaemonEvent]  # the events that ended a job, in order
+    published: list[CalibrationResult]  # put on .../calibration, in order
+    status: CalibrationStatus
+    answered: list[str]  # result ids the .../calibration queryable answered at the end
+
+
+def _drive(sim: SimulationResult, state_dir: Path) -> Drive:
     base = demo_config(sim, state_dir, free_port())
     config = base.model_copy(update={"trigger": base.trigger.model_copy(update={"min_traversals": 4})})
     camera_id = config.cameras[0].camera_id
-    truth = sim.ground_truth[camera_id]
-    [move] = truth.moves
-    ends = _traversal_ends(sim, camera_id)
-    assert len(ends) == 8 and ends[3] < move.from_exposure_ns < ends[4]
+    assert len(_traversal_ends(sim, camera_id)) == 8
     messages = simulation_messages(sim)
     clock = DriveClock(messages[0].stamp_ns - NS_PER_S, RATE)
     events: list[DaemonEvent] = []
@@ -748,23 +750,70 @@ def test_a_moved_camera_is_flagged_and_replaced_by_a_fit_on_the_new_drive_pasts_
         client = zenoh.open(client_config(config.zenoh.listen))
         subscriber = _subscribe_calibrations(client, config, received)
         _play(client, messages, clock)
-        finished = {"published", "verified", "refused", "failed"}  # event kinds that end a job
-        wait_until(lambda: sum(e.kind in finished for e in events) >= 2, timeout_s=120)
-        assert [e.kind for e in events if e.kind in finished] == ["published", "published"], [
-            e.text for e in events if e.kind in finished
-        ]
-        wait_until(lambda: len(received) == 2, timeout_s=10)
+        kinds = {"published", "verified", "refused", "failed"}  # event kinds that end a job
+        wait_until(lambda: sum(e.kind in kinds for e in events) >= 2, timeout_s=120)
+        finished = [e for e in events if e.kind in kinds]
+        published = sum(e.kind == "published" for e in finished)
+        wait_until(lambda: len(received) == published, timeout_s=10)
         subscriber.undeclare()  # type: ignore[no-untyped-call]
-        first, second = (decode_json(CalibrationResult, payload) for _, payload in received)
         status = _status(client, config, camera_id)
-        assert status is not None and status.state == "calibrated"
-        assert status.current_result_id == second.result_id
-        answered = _calibration(client, config, camera_id).ok
-        assert [decode_json(CalibrationResult, p).result_id for _, p in answered] == [second.result_id]
+        assert status is not None
+        answered = [
+            decode_json(CalibrationResult, p).result_id for _, p in _calibration(client, config, camera_id).ok
+        ]
     finally:
         if client is not None:
             client.close()  # type: ignore[no-untyped-call]
         daemon.stop()
+    results = [decode_json(CalibrationResult, payload) for _, payload in received]
+    return Drive(config, camera_id, finished, results, status, answered)
+
+
+def test_a_static_camera_is_reverified_on_the_new_drive_pasts_alone(tmp_path: Path) -> None:
+    """The moved-camera drive without the move: the second job, on drive-pasts 5-8 alone, agrees with the
+    first: nothing is put on the bus, verified_at is refreshed and the stored result stays."""
+    sim = simulate(replace(resolve_config("moved-camera"), camera_move=None), 0, ideal=True)
+    state_dir = tmp_path / "state"
+
+    drive = _drive(sim, state_dir)
+
+    assert [e.kind for e in drive.finished] == ["published", "verified"], [e.text for e in drive.finished]
+    [first] = drive.published
+    assert drive.answered == [first.result_id] and _current_file(state_dir, drive.camera_id) == first
+    [stored, check] = _history(state_dir, drive.camera_id)
+    assert stored == first and check.verdict.is_accepted
+    assert check.change is not None and not check.change.moved
+    assert check.change.previous_result_id == first.result_id
+    assert first.quality is not None and first.quality.traversals == 4
+    assert check.quality is not None and check.quality.traversals == 4  # the new drive-pasts alone
+    assert first.provenance.window_end_ns is not None and check.provenance.window_start_ns is not None
+    assert first.provenance.window_end_ns < check.provenance.window_start_ns
+    status = drive.status
+    assert status.state == "calibrated" and status.current_result_id == first.result_id
+    assert status.verified_at_ns is not None and status.verified_at_ns >= check.created_at_ns
+    assert status.counters["jobs"] == 2 and status.counters["jobs.accepted"] == 2
+
+
+def test_a_moved_camera_is_flagged_and_replaced_by_a_fit_on_the_new_drive_pasts_alone(
+    moved_sim: SimulationResult, tmp_path: Path
+) -> None:
+    """Issue 10 part 7 over the bus: calibrated from the first four drive-pasts, knocked (0.4 m, 0.6 deg)
+    after the fourth, the next four are judged on their own: the move is flagged (change.moved) and their
+    result replaces the old one."""
+    sim = moved_sim
+    state_dir = tmp_path / "state"
+    truth = sim.ground_truth[sim.cameras[0].camera_id]
+    [move] = truth.moves
+    ends = _traversal_ends(sim, sim.cameras[0].camera_id)
+    assert ends[3] < move.from_exposure_ns < ends[4]
+
+    drive = _drive(sim, state_dir)
+
+    config, camera_id = drive.config, drive.camera_id
+    assert [e.kind for e in drive.finished] == ["published", "published"], [e.text for e in drive.finished]
+    first, second = drive.published
+    assert drive.status.state == "calibrated" and drive.status.current_result_id == second.result_id
+    assert drive.answered == [second.result_id]
     assert _current_file(state_dir, camera_id) == second
     # Each fit saw its own four drive-pasts: the windows do not overlap and straddle the move.
     assert first.quality is not None and first.quality.traversals == 4
