@@ -2,8 +2,9 @@
 
 Zenoh callbacks only enqueue (key, payload, received_ns). The ingest thread owns the decoder, the MCAP
 recorder and the traversal trackers: it decodes, logs, counts traversals and, when a camera is due, flushes
-the recording and hands a job to the job runner (separate processes). The supervisor thread owns the
-results: it stores each finished job atomically, publishes accepted ones and keeps the per-camera status.
+the recording and hands a job to the job runner (daemon.pool, separate processes). The supervisor thread
+owns the results: it applies each finished job's Decision (daemon.publication: what to store, publish and
+remember), so every camera's record (CameraRuntime) changes there.
 Queryable threads read immutable snapshots only. The camera's state is persisted after every job, so
 shutdown has nothing left to save: close the Zenoh session (no new input, no more queries), stop the
 detectors, let the ingest thread drain the inbox and finish the MCAP file, stop the supervisor, then the
