@@ -3,8 +3,9 @@
 A body on a 6 % grade is pitched 3.4 deg: its front and rear ends sit 7 cm above and below a level body's
 and its roof moves 9 cm along the road, which a level template turns into a camera pose decimetres off. The
 path's own height profile gives the grade: per pose, a straight line of height against distance travelled
-is fitted over the poses within `window_m` (GNSS height noise of a few cm averages out over metres), and the
-pitch is the slope's angle (Rz Ry Rx convention: positive pitch = nose down, so pitch = -atan(dz/ds)).
+is fitted over the poses within `window_m` (GNSS height noise of a few cm averages out over metres), shrunk
+towards level by its own standard error, and the pitch is the slope's angle (Rz Ry Rx convention:
+positive pitch = nose down, so pitch = -atan(dz/ds)).
 
 Roll stays 0. A road's cross slope (crown, camber: 2-3 %) turns the body by about 1.5 deg, which moves a
 side of the template by about 2 cm at roof height: far below what the data can resolve, and a single path
@@ -27,7 +28,7 @@ def reports_attitude(trajectory: Trajectory) -> bool:
 
 
 def with_path_pitch(
-    trajectory: Trajectory, window_m: float = 8.0, max_gap_ns: int = 1_500_000_000
+    trajectory: Trajectory, window_m: float = 20.0, max_gap_ns: int = 1_500_000_000
 ) -> Trajectory:
     """The trajectory with pitch from the path's height profile (see the module); poses with an attitude
     of their own, or too few neighbours, keep theirs."""
@@ -58,12 +59,21 @@ def path_pitch(stamps: np.ndarray, positions: FloatArray, window_m: float, max_g
         cz = np.concatenate([[0.0], np.cumsum(z)])
         css = np.concatenate([[0.0], np.cumsum(s * s)])
         csz = np.concatenate([[0.0], np.cumsum(s * z)])
+        czz = np.concatenate([[0.0], np.cumsum(z * z)])
         n = c[hi] - c[lo]
         sum_s, sum_z = cs[hi] - cs[lo], cz[hi] - cz[lo]
         var = (css[hi] - css[lo]) - sum_s**2 / np.maximum(n, 1.0)
         cov = (csz[hi] - csz[lo]) - sum_s * sum_z / np.maximum(n, 1.0)
+        var_z = (czz[hi] - czz[lo]) - sum_z**2 / np.maximum(n, 1.0)
         spread = s[np.minimum(hi, len(s)) - 1] - s[lo]
         ok = (n >= 3) & (spread >= window_m / 4.0) & (var > 0)
-        slope = np.where(ok, cov / np.where(var > 0, var, 1.0), 0.0)
-        pitch[run] = -np.arctan(slope)
+        safe_var = np.where(ok, var, 1.0)
+        slope = np.where(ok, cov / safe_var, 0.0)
+        # Height noise makes a slope out of a level road (7 cm of noise over 20 m: ~0.5 deg). The slope is
+        # shrunk by slope^2 / (slope^2 + se^2), se its standard error from the line's residuals: a grade the
+        # heights clearly show is kept, one within their noise fades to level.
+        residual = np.maximum(var_z - slope * cov, 0.0) / np.maximum(n - 2.0, 1.0)
+        se_squared = np.where(ok, residual / safe_var, np.inf)
+        shrink = np.where(ok, slope**2 / np.maximum(slope**2 + se_squared, 1e-300), 0.0)
+        pitch[run] = -np.arctan(slope * shrink)
     return pitch

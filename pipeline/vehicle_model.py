@@ -654,12 +654,10 @@ def check_traversals(
         # clock or body, is predicted far worse than it is fitted.
         held_out = clusters[index]
         statistic, predicted = _holdout_statistic(fit, loo, held_out, trajectory, camera, vehicle, params)
-        if shift > 3.0 * loo.position_std_m or angle > 3.0 * loo.rotation_std_deg:
-            problems.append(
-                f"without traversal {index + 1} the pose moves {shift:.2f} m / {angle:.2f} deg "
-                f"(its 3 std: {3 * loo.position_std_m:.2f} m / {3 * loo.rotation_std_deg:.2f} deg)"
-            )
-        elif statistic > params.holdout_chi2_per_residual:
+        # Judged on the boxes, not on the pose move against the left-out fit's own std: that std leaves out
+        # errors shared within a drive-past (GNSS drift), and moves of 2-3 of it were common between
+        # drive-pasts that agree (the first simulator's world).
+        if statistic > params.holdout_chi2_per_residual:
             problems.append(
                 f"the others predict traversal {index + 1}'s boxes {predicted:.1f} px off, "
                 f"{statistic:.1f} x the variance their uncertainty and the detector's noise allow"
@@ -817,17 +815,31 @@ def cuboid_params(params: ModelParams) -> ModelParams:
     return replace(params, shape_std=(tiny,) * 6, scale_std=tiny, shift_std_px=tiny, grow_std_px=tiny)
 
 
-def misfit_statistic(fit: ModelFit, scale_px: FloatArray) -> float:
-    """Robust chi-square of a fit's residuals in units of the given effective stds (N, 4): the Huber
-    rho of each (quadratic to 2, then linear), summed over the residuals both have."""
-    z = np.abs(fit.residuals_px / scale_px)
-    z = z[np.isfinite(z)]
-    return float(np.sum(np.where(z <= 2.0, z**2, 4.0 * z - 4.0)))
-
-
-def cuboid_suffices(full: ModelFit, cuboid: ModelFit, threshold: float) -> bool:
-    """True when the cuboid explains the boxes as well as the full model within chance: the drop of the
-    robust chi-square (in the full model's effective stds) from the 11 extra parameters stays below
-    `threshold` (chi-square with 11 degrees of freedom: 24.7 at 1 %)."""
-    scale = full.row_scale_px
-    return misfit_statistic(cuboid, scale) - misfit_statistic(full, scale) <= threshold
+def holdout_error(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+    gap_s: float = 5.0,
+) -> float:
+    """Cross-validated misfit of a model class: each traversal's boxes predicted by the fit of the others
+    (started from `fit`), the median |edge residual| (px) per traversal, summed; inf when a left-out fit is
+    impossible. Used to choose between model classes: a class that fits the noise of the traversals it saw
+    predicts the others worse."""
+    clusters = _traversal_clusters(tracks, gap_s)
+    if len(clusters) < 2:
+        return math.inf
+    quick = replace(params, max_evaluations=max(8, params.max_evaluations // 2))
+    total = 0.0
+    for index, held_out in enumerate(clusters):
+        rest = [t for i, c in enumerate(clusters) if i != index for t in c]
+        try:
+            loo = fit_vehicle_model(
+                fit.R_cam_from_local, fit.t_cam_from_local, rest, trajectory, camera, vehicle, quick
+            )
+        except DegenerateGeometry:
+            return math.inf
+        total += _median_abs(predicted_residuals(loo, held_out, trajectory, camera, vehicle, params))
+    return total

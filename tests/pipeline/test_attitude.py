@@ -39,6 +39,15 @@ def test_height_noise_averages_out_over_the_window():
     assert np.max(np.abs(pitch + math.atan(0.06))) < math.radians(1.0)
 
 
+def test_height_noise_on_a_level_road_stays_level():
+    """7.5 cm of height noise (the first simulator's pose noise) on a level road: no invented grade."""
+    trajectory = _path(0.0)
+    noisy = trajectory.poses.copy()
+    noisy[:, 2] += np.random.default_rng(1).normal(0.0, 0.075, len(noisy))
+    pitch = with_path_pitch(Trajectory(trajectory.stamps, noisy)).poses[:, 4]
+    assert np.sqrt(np.mean(pitch**2)) < math.radians(0.15)
+
+
 def test_a_crest_is_followed():
     """A vertical curve: grade +6 % then -6 %; pitch changes sign across the crest."""
     t = np.arange(0.0, 20.0, 0.2)
