@@ -116,8 +116,9 @@ _DISTINCT_START_RAD = math.radians(3.0)
 # From a start 20-60 deg off (the scan's, on a shifted family) a fit can need 15 steps; the refinement
 # downstream does the last digits.
 _BOX_FIT_ITERATIONS = 25
-# Forward-difference steps of the box fit's parameters: yaw, pitch, roll (rad), camera centre (m).
-_BOX_FIT_STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4])
+# The box fit has settled when every parameter's step is below these: yaw, pitch, roll (rad), camera
+# centre (m); 1e-5 rad puts a box edge 20 m away 0.2 mm off.
+_BOX_FIT_SETTLED_STEPS = np.array([1e-5, 1e-5, 1e-5, 1e-3, 1e-3, 1e-3])
 
 
 @dataclass(frozen=True, slots=True)
@@ -417,29 +418,27 @@ def _fit_box(family: _LineFamily, R_start: Rotation, C_start: Vec3, roll: float 
     """Robust fit of the camera pose to the track's box edges (the vehicle cuboid's tight boxes), from a
     start: yaw, pitch, roll and centre (6 dof), or with the roll fixed at `roll` (rad; 5 dof).
 
-    Levenberg-Marquardt on the soft-L1 cost, reweighted each step (IRLS): the residuals and their
-    forward-difference Jacobian come from one batched evaluation, which a general solver cannot share,
-    and it runs a few hundred times per camera.
+    Levenberg-Marquardt on the soft-L1 cost, reweighted each step (IRLS), with the analytic Jacobian of
+    `_box_fit_linearised`: it runs a few hundred times per camera, on most of the hypotheses stage's time.
     """
     up = family.ground.normal
     yaw, pitch = _level_angles(R_start, up)
     free = roll is None
     start = np.array([yaw, pitch, _image_roll(R_start, up) if roll is None else roll, *C_start])
     used = np.arange(6) if free else np.array([0, 1, 3, 4, 5])
-    steps = _BOX_FIT_STEPS[used]
+    settled_steps = _BOX_FIT_SETTLED_STEPS[used]
 
     def residuals_at(x: FloatArray) -> FloatArray:
         xs = start.copy()
         xs[used] = x
-        return np.asarray(_box_fit_residuals(xs[None, :], family)[0], dtype=np.float64)
+        return _box_fit_linearised(xs, family, jacobian=False)[0]
 
     def linearised_at(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Residuals (E,) and their forward-difference Jacobian (E, len(x)), in one batch."""
-        xs = np.tile(start, (len(used) + 1, 1))
-        xs[:, used] = x
-        xs[1:, used] += np.diag(steps)
-        values = _box_fit_residuals(xs, family)
-        return values[0], np.asarray(((values[1:] - values[0]) / steps[:, None]).T, dtype=np.float64)
+        """Residuals (E,) and their Jacobian (E, len(x))."""
+        xs = start.copy()
+        xs[used] = x
+        values, jacobian = _box_fit_linearised(xs, family, jacobian=True)
+        return values, jacobian[:, used]
 
     def soft_l1(values: FloatArray) -> float:
         return float(np.sum(np.sqrt(1.0 + values**2) - 1.0))
@@ -461,8 +460,8 @@ def _fit_box(family: _LineFamily, R_start: Rotation, C_start: Vec3, roll: float 
             if damping > 1e6:
                 break
             continue
-        # Settled: the cost barely moves, or the step is within ten finite-difference steps.
-        settled = cost - trial_cost <= 1e-6 * cost or bool(np.all(np.abs(step) < 10.0 * steps))
+        # Settled: the cost barely moves, or the step is negligible.
+        settled = cost - trial_cost <= 1e-6 * cost or bool(np.all(np.abs(step) < settled_steps))
         x = x + step
         damping = max(damping * 0.3, 1e-7)
         residual, J = linearised_at(x)
@@ -486,14 +485,92 @@ def _fit_box(family: _LineFamily, R_start: Rotation, C_start: Vec3, roll: float 
     return _Member(R, params[3:6].copy(), misfit, _image_roll(R, up), rotation_std_deg)
 
 
-def _box_fit_residuals(xs: FloatArray, family: _LineFamily) -> FloatArray:
-    """Scaled box-edge residuals (K, E) of K poses xs (K, 6) = (yaw, pitch, roll, centre xyz), the E edges
-    not on the image border; a pose with a corner behind the camera gets 1e3."""
-    R = _level_rotations(xs[:, 0], xs[:, 1], family.ground.normal, xs[:, 2], family.basis)
-    residual, in_front = _box_residuals(R, xs[:, 3:6], family.data, family.camera)
-    values = residual[:, ~family.data.on_border]
-    values[~in_front] = 1e3
-    return np.asarray(values, dtype=np.float64)
+def _box_fit_linearised(
+    x: FloatArray, family: _LineFamily, *, jacobian: bool
+) -> tuple[FloatArray, FloatArray]:
+    """The box fit's residuals at one pose x (6,) = (yaw, pitch, roll, centre xyz; `_level_rotations`):
+    the scaled edge residuals of `_box_residuals` on the E edges off the image border, (E,); and with
+    `jacobian` their analytic Jacobian (E, 6) (else (E, 0)). A pose with a corner behind the camera gets
+    residuals 1e3 and a zero Jacobian.
+
+    A box edge is the extreme projected cuboid corner's coordinate, so its derivative is that corner's:
+    the rotation's from `_level_rotations` differentiated by hand, the camera centre's -R, through the
+    division by depth, the OpenCV distortion and K. Where two corners tie for an edge the derivative is
+    one-sided, as a finite difference's is.
+    """
+    data, camera = family.data, family.camera
+    up = family.ground.normal
+    east, north = family.basis
+    c, s = math.cos(float(x[0])), math.sin(float(x[0]))
+    cp, sp = math.cos(float(x[1])), math.sin(float(x[1]))
+    cr, sr = math.cos(float(x[2])), math.sin(float(x[2]))
+    horizontal = c * east + s * north
+    right0 = s * east - c * north  # d horizontal / d yaw = -right0, d right0 / d yaw = horizontal
+    down0 = -sp * horizontal - cp * up
+    forward = cp * horizontal - sp * up
+    right = cr * right0 + sr * down0
+    down = -sr * right0 + cr * down0
+    R = np.stack([right, down, forward])
+    offsets = data.corners - x[3:6]  # (N, 3) corner minus camera centre
+    points_cam = offsets @ R.T
+    depth = points_cam[:, 2]
+    keep = ~data.on_border
+    edges = int(np.count_nonzero(keep))
+    if not bool(np.all(depth > 1e-6)):
+        return np.full(edges, 1e3), np.zeros((edges, 6 if jacobian else 0))
+    inv_depth = 1.0 / depth
+    xn, yn = points_cam[:, 0] * inv_depth, points_cam[:, 1] * inv_depth
+    if jacobian:
+        down0_pitch = -cp * horizontal + sp * up  # d down0 / d pitch
+        # dR/d(yaw, pitch, roll), each (3 rows, 3)
+        dR = np.array(
+            [
+                [cr * horizontal + sr * sp * right0, -sr * horizontal + cr * sp * right0, -cp * right0],
+                [sr * down0_pitch, cr * down0_pitch, down0],
+                [down, -right, np.zeros(3)],
+            ]
+        )
+        d_cam = np.empty((len(offsets), 3, 6))  # d points_cam / d x
+        d_cam[:, :, :3] = np.einsum("ajk,nk->nja", dR, offsets)
+        d_cam[:, :, 3:] = -R
+        dx = (d_cam[:, 0] - xn[:, None] * d_cam[:, 2]) * inv_depth[:, None]
+        dy = (d_cam[:, 1] - yn[:, None] * d_cam[:, 2]) * inv_depth[:, None]
+    if camera.has_distortion:
+        k1, k2, p1, p2, k3 = camera.dist
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        if jacobian:
+            radial_r2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+            dxd_dx = radial + 2.0 * xn * xn * radial_r2 + 2.0 * p1 * yn + 6.0 * p2 * xn
+            dxd_dy = 2.0 * xn * yn * radial_r2 + 2.0 * p1 * xn + 2.0 * p2 * yn  # = d yd / d x
+            dyd_dy = radial + 2.0 * yn * yn * radial_r2 + 6.0 * p1 * yn + 2.0 * p2 * xn
+            dx, dy = (
+                dxd_dx[:, None] * dx + dxd_dy[:, None] * dy,
+                dxd_dy[:, None] * dx + dyd_dy[:, None] * dy,
+            )
+        xn, yn = (
+            xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn),
+            yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn,
+        )
+    K = camera.K
+    rows = len(data.boxes)
+    u = (K[0, 0] * xn + K[0, 1] * yn + K[0, 2]).reshape(rows, 8)
+    v = (K[1, 1] * yn + K[1, 2]).reshape(rows, 8)
+    extremes = [u.argmin(axis=1), v.argmin(axis=1), u.argmax(axis=1), v.argmax(axis=1)]
+    index = np.arange(rows)
+    model = np.column_stack(
+        [u[index, extremes[0]], v[index, extremes[1]], u[index, extremes[2]], v[index, extremes[3]]]
+    )
+    values = ((model - data.boxes) / data.scale)[keep]
+    if not jacobian:
+        return values, np.zeros((edges, 0))
+    du = (K[0, 0] * dx + K[0, 1] * dy).reshape(rows, 8, 6)
+    dv = (K[1, 1] * dy).reshape(rows, 8, 6)
+    d_model = np.stack(
+        [du[index, extremes[0]], dv[index, extremes[1]], du[index, extremes[2]], dv[index, extremes[3]]],
+        axis=1,
+    )
+    return values, (d_model / data.scale[:, :, None])[keep]
 
 
 def _box_residuals(
