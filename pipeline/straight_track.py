@@ -419,7 +419,7 @@ def _fit_box(family: _LineFamily, R_start: Rotation, C_start: Vec3, roll: float 
     start: yaw, pitch, roll and centre (6 dof), or with the roll fixed at `roll` (rad; 5 dof).
 
     Levenberg-Marquardt on the soft-L1 cost, reweighted each step (IRLS), with the analytic Jacobian of
-    `_box_fit_linearised`: it runs a few hundred times per camera, on most of the hypotheses stage's time.
+    `_BoxFitPoint`: it runs a few hundred times per camera, on most of the hypotheses stage's time.
     """
     up = family.ground.normal
     yaw, pitch = _level_angles(R_start, up)
@@ -428,23 +428,17 @@ def _fit_box(family: _LineFamily, R_start: Rotation, C_start: Vec3, roll: float 
     used = np.arange(6) if free else np.array([0, 1, 3, 4, 5])
     settled_steps = _BOX_FIT_SETTLED_STEPS[used]
 
-    def residuals_at(x: FloatArray) -> FloatArray:
+    def evaluate(x: FloatArray) -> _BoxFitPoint:
         xs = start.copy()
         xs[used] = x
-        return _box_fit_linearised(xs, family, jacobian=False)[0]
-
-    def linearised_at(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Residuals (E,) and their Jacobian (E, len(x))."""
-        xs = start.copy()
-        xs[used] = x
-        values, jacobian = _box_fit_linearised(xs, family, jacobian=True)
-        return values, jacobian[:, used]
+        return _BoxFitPoint.at(xs, family)
 
     def soft_l1(values: FloatArray) -> float:
         return float(np.sum(np.sqrt(1.0 + values**2) - 1.0))
 
     x = start[used].copy()
-    residual, J = linearised_at(x)
+    point = evaluate(x)
+    residual, J = point.values, point.jacobian(family)[:, used]
     cost = soft_l1(residual)
     damping = 1e-3
     for _ in range(_BOX_FIT_ITERATIONS):
@@ -454,7 +448,8 @@ def _fit_box(family: _LineFamily, R_start: Rotation, C_start: Vec3, roll: float 
             step = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), -J.T @ (weights * residual))
         except np.linalg.LinAlgError:
             break
-        trial_cost = soft_l1(residuals_at(x + step))
+        trial = evaluate(x + step)
+        trial_cost = soft_l1(trial.values)
         if not trial_cost < cost:
             damping *= 10.0
             if damping > 1e6:
@@ -464,8 +459,7 @@ def _fit_box(family: _LineFamily, R_start: Rotation, C_start: Vec3, roll: float 
         settled = cost - trial_cost <= 1e-6 * cost or bool(np.all(np.abs(step) < settled_steps))
         x = x + step
         damping = max(damping * 0.3, 1e-7)
-        residual, J = linearised_at(x)
-        cost = soft_l1(residual)
+        residual, J, cost = trial.values, trial.jacobian(family)[:, used], trial_cost
         if settled:
             break
     params = start.copy()
@@ -490,37 +484,76 @@ def _box_fit_linearised(
 ) -> tuple[FloatArray, FloatArray]:
     """The box fit's residuals at one pose x (6,) = (yaw, pitch, roll, centre xyz; `_level_rotations`):
     the scaled edge residuals of `_box_residuals` on the E edges off the image border, (E,); and with
-    `jacobian` their analytic Jacobian (E, 6) (else (E, 0)). A pose with a corner behind the camera gets
-    residuals 1e3 and a zero Jacobian.
+    `jacobian` their analytic Jacobian (E, 6) (else (E, 0)). See `_BoxFitPoint`."""
+    point = _BoxFitPoint.at(x, family)
+    return point.values, point.jacobian(family) if jacobian else np.zeros((len(point.values), 0))
 
-    A box edge is the extreme projected cuboid corner's coordinate, so its derivative is that corner's:
+
+@dataclass(frozen=True, slots=True)
+class _BoxFitPoint:
+    """The box fit at one pose x (6,) = (yaw, pitch, roll, centre xyz; `_level_rotations`): its residuals
+    (E,), the scaled edge residuals of `_box_residuals` on the E edges off the image border, and what
+    their analytic Jacobian needs. A pose with a corner behind the camera has residuals 1e3 and a zero
+    Jacobian.
+
+    A box edge is its extreme projected cuboid corner's coordinate, so its derivative is that corner's:
     the rotation's from `_level_rotations` differentiated by hand, the camera centre's -R, through the
     division by depth, the OpenCV distortion and K. Where two corners tie for an edge the derivative is
-    one-sided, as a finite difference's is.
+    one-sided, as a finite difference's is. Only the E extreme corners are differentiated, and only
+    when a step is taken: a trial step that fails needs the residuals alone.
     """
-    data, camera = family.data, family.camera
-    up = family.ground.normal
-    east, north = family.basis
-    c, s = math.cos(float(x[0])), math.sin(float(x[0]))
-    cp, sp = math.cos(float(x[1])), math.sin(float(x[1]))
-    cr, sr = math.cos(float(x[2])), math.sin(float(x[2]))
-    horizontal = c * east + s * north
-    right0 = s * east - c * north  # d horizontal / d yaw = -right0, d right0 / d yaw = horizontal
-    down0 = -sp * horizontal - cp * up
-    forward = cp * horizontal - sp * up
-    right = cr * right0 + sr * down0
-    down = -sr * right0 + cr * down0
-    R = np.stack([right, down, forward])
-    offsets = data.corners - x[3:6]  # (N, 3) corner minus camera centre
-    points_cam = offsets @ R.T
-    depth = points_cam[:, 2]
-    keep = ~data.on_border
-    edges = int(np.count_nonzero(keep))
-    if not bool(np.all(depth > 1e-6)):
-        return np.full(edges, 1e3), np.zeros((edges, 6 if jacobian else 0))
-    inv_depth = 1.0 / depth
-    xn, yn = points_cam[:, 0] * inv_depth, points_cam[:, 1] * inv_depth
-    if jacobian:
+
+    x: FloatArray
+    values: FloatArray
+    in_front: bool
+    corner: IntArray  # (E,) index of each edge's extreme corner in `_BoxData.corners`
+    is_u: BoolArray  # (E,) whether the edge is a u (x1, x2) or a v (y1, y2) edge
+    scale: FloatArray  # (E,) the residual scale of each edge's box
+
+    @staticmethod
+    def at(x: FloatArray, family: _LineFamily) -> _BoxFitPoint:
+        data, camera = family.data, family.camera
+        keep = ~data.on_border
+        R = _box_fit_rotation(x, family)
+        points_cam = (data.corners - x[3:6]) @ R.T
+        depth = points_cam[:, 2]
+        if not bool(np.all(depth > 1e-6)):
+            edges = int(np.count_nonzero(keep))
+            empty = np.zeros(0, dtype=np.int64)
+            return _BoxFitPoint(x, np.full(edges, 1e3), False, empty, np.zeros(0, dtype=bool), np.zeros(0))
+        xy = points_cam[:, :2] / depth[:, None]
+        if camera.has_distortion:
+            xy = distort_normalized(xy, camera.dist)
+        K = camera.K
+        rows = len(data.boxes)
+        u = (K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]).reshape(rows, 8)
+        v = (K[1, 1] * xy[:, 1] + K[1, 2]).reshape(rows, 8)
+        extremes = np.column_stack([u.argmin(axis=1), v.argmin(axis=1), u.argmax(axis=1), v.argmax(axis=1)])
+        index = np.arange(rows)[:, None]
+        is_u = np.broadcast_to(np.array([True, False, True, False]), (rows, 4))
+        model = np.where(is_u, u[index, extremes], v[index, extremes])
+        scale = np.broadcast_to(data.scale, (rows, 4))
+        values = ((model - data.boxes) / scale)[keep]
+        corner = (8 * index + extremes)[keep]
+        return _BoxFitPoint(x, values, True, corner, is_u[keep], scale[keep])
+
+    def jacobian(self, family: _LineFamily) -> FloatArray:
+        """d values / d x (E, 6)."""
+        if not self.in_front:
+            return np.zeros((len(self.values), 6))
+        camera, x = family.camera, self.x
+        up = family.ground.normal
+        east, north = family.basis
+        c, s = math.cos(float(x[0])), math.sin(float(x[0]))
+        cp, sp = math.cos(float(x[1])), math.sin(float(x[1]))
+        cr, sr = math.cos(float(x[2])), math.sin(float(x[2]))
+        horizontal = c * east + s * north
+        right0 = s * east - c * north  # d horizontal / d yaw = -right0, d right0 / d yaw = horizontal
+        down0 = -sp * horizontal - cp * up
+        forward = cp * horizontal - sp * up
+        right = cr * right0 + sr * down0
+        down = -sr * right0 + cr * down0
+        R = np.stack([right, down, forward])
         down0_pitch = -cp * horizontal + sp * up  # d down0 / d pitch
         # dR/d(yaw, pitch, roll), each (3 rows, 3)
         dR = np.array(
@@ -530,16 +563,19 @@ def _box_fit_linearised(
                 [down, -right, np.zeros(3)],
             ]
         )
+        offsets = family.data.corners[self.corner] - x[3:6]  # (E, 3) corner minus camera centre
+        points_cam = offsets @ R.T
         d_cam = np.empty((len(offsets), 3, 6))  # d points_cam / d x
         d_cam[:, :, :3] = np.einsum("ajk,nk->nja", dR, offsets)
         d_cam[:, :, 3:] = -R
+        inv_depth = 1.0 / points_cam[:, 2]
+        xn, yn = points_cam[:, 0] * inv_depth, points_cam[:, 1] * inv_depth
         dx = (d_cam[:, 0] - xn[:, None] * d_cam[:, 2]) * inv_depth[:, None]
         dy = (d_cam[:, 1] - yn[:, None] * d_cam[:, 2]) * inv_depth[:, None]
-    if camera.has_distortion:
-        k1, k2, p1, p2, k3 = camera.dist
-        r2 = xn * xn + yn * yn
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        if jacobian:
+        if camera.has_distortion:
+            k1, k2, p1, p2, k3 = camera.dist
+            r2 = xn * xn + yn * yn
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
             radial_r2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
             dxd_dx = radial + 2.0 * xn * xn * radial_r2 + 2.0 * p1 * yn + 6.0 * p2 * xn
             dxd_dy = 2.0 * xn * yn * radial_r2 + 2.0 * p1 * xn + 2.0 * p2 * yn  # = d yd / d x
@@ -548,29 +584,17 @@ def _box_fit_linearised(
                 dxd_dx[:, None] * dx + dxd_dy[:, None] * dy,
                 dxd_dy[:, None] * dx + dyd_dy[:, None] * dy,
             )
-        xn, yn = (
-            xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn),
-            yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn,
-        )
-    K = camera.K
-    rows = len(data.boxes)
-    u = (K[0, 0] * xn + K[0, 1] * yn + K[0, 2]).reshape(rows, 8)
-    v = (K[1, 1] * yn + K[1, 2]).reshape(rows, 8)
-    extremes = [u.argmin(axis=1), v.argmin(axis=1), u.argmax(axis=1), v.argmax(axis=1)]
-    index = np.arange(rows)
-    model = np.column_stack(
-        [u[index, extremes[0]], v[index, extremes[1]], u[index, extremes[2]], v[index, extremes[3]]]
+        K = camera.K
+        d_edge = np.where(self.is_u[:, None], K[0, 0] * dx + K[0, 1] * dy, K[1, 1] * dy)
+        return np.asarray(d_edge / self.scale[:, None], dtype=np.float64)
+
+
+def _box_fit_rotation(x: FloatArray, family: _LineFamily) -> Rotation:
+    """R_cam_from_local of the box fit's pose x (`_level_rotations` for one pose)."""
+    return np.asarray(
+        _level_rotations(x[None, 0], x[None, 1], family.ground.normal, x[None, 2], family.basis)[0],
+        dtype=np.float64,
     )
-    values = ((model - data.boxes) / data.scale)[keep]
-    if not jacobian:
-        return values, np.zeros((edges, 0))
-    du = (K[0, 0] * dx + K[0, 1] * dy).reshape(rows, 8, 6)
-    dv = (K[1, 1] * dy).reshape(rows, 8, 6)
-    d_model = np.stack(
-        [du[index, extremes[0]], dv[index, extremes[1]], du[index, extremes[2]], dv[index, extremes[3]]],
-        axis=1,
-    )
-    return values, (d_model / data.scale[:, :, None])[keep]
 
 
 def _box_residuals(
