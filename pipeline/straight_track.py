@@ -174,8 +174,15 @@ class _LineFamily:
         return np.asarray(mount, dtype=np.int64)
 
     def score(self, R: FloatArray, C: FloatArray) -> tuple[FloatArray, IntArray]:
-        """Box-shape misfit (K,) of poses R (K, 3, 3), centres C (K, 3), and `mount_of` them."""
-        return _box_shape_misfit(R, C, self.data, self.camera), self.mount_of(R, C)
+        """Box-shape misfit (K,) of poses R (K, 3, 3), centres C (K, 3), and `mount_of` them. A camera
+        under the ground (mount -2) is never a candidate and is not scored (inf): about half of a full
+        turn about the line."""
+        mount = self.mount_of(R, C)
+        scores = np.full(len(R), np.inf)
+        above = mount != -2
+        if np.any(above):
+            scores[above] = _box_shape_misfit(R[above], C[above], self.data, self.camera)
+        return scores, mount
 
 
 @dataclass(frozen=True, slots=True)
