@@ -521,7 +521,7 @@ class _BoxFitPoint:
     def at(x: FloatArray, family: _LineFamily) -> _BoxFitPoint:
         data, camera = family.data, family.camera
         keep = ~data.on_border
-        R = _box_fit_rotation(x, family)
+        R, _ = _box_fit_rotation(x, family, derivatives=False)
         points_cam = (data.corners - x[3:6]) @ R.T
         depth = points_cam[:, 2]
         if not bool(np.all(depth > 1e-6)):
@@ -549,27 +549,7 @@ class _BoxFitPoint:
         if not self.in_front:
             return np.zeros((len(self.values), 6))
         camera, x = family.camera, self.x
-        up = family.ground.normal
-        east, north = family.basis
-        c, s = math.cos(float(x[0])), math.sin(float(x[0]))
-        cp, sp = math.cos(float(x[1])), math.sin(float(x[1]))
-        cr, sr = math.cos(float(x[2])), math.sin(float(x[2]))
-        horizontal = c * east + s * north
-        right0 = s * east - c * north  # d horizontal / d yaw = -right0, d right0 / d yaw = horizontal
-        down0 = -sp * horizontal - cp * up
-        forward = cp * horizontal - sp * up
-        right = cr * right0 + sr * down0
-        down = -sr * right0 + cr * down0
-        R = np.stack([right, down, forward])
-        down0_pitch = -cp * horizontal + sp * up  # d down0 / d pitch
-        # dR/d(yaw, pitch, roll), each (3 rows, 3)
-        dR = np.array(
-            [
-                [cr * horizontal + sr * sp * right0, -sr * horizontal + cr * sp * right0, -cp * right0],
-                [sr * down0_pitch, cr * down0_pitch, down0],
-                [down, -right, np.zeros(3)],
-            ]
-        )
+        R, dR = _box_fit_rotation(x, family, derivatives=True)
         offsets = family.data.corners[self.corner] - x[3:6]  # (E, 3) corner minus camera centre
         points_cam = offsets @ R.T
         d_cam = np.empty((len(offsets), 3, 6))  # d points_cam / d x
@@ -596,12 +576,35 @@ class _BoxFitPoint:
         return np.asarray(d_edge / self.scale[:, None], dtype=np.float64)
 
 
-def _box_fit_rotation(x: FloatArray, family: _LineFamily) -> Rotation:
-    """R_cam_from_local of the box fit's pose x (`_level_rotations` for one pose)."""
-    return np.asarray(
-        _level_rotations(x[None, 0], x[None, 1], family.ground.normal, x[None, 2], family.basis)[0],
-        dtype=np.float64,
+def _box_fit_rotation(
+    x: FloatArray, family: _LineFamily, *, derivatives: bool
+) -> tuple[Rotation, FloatArray]:
+    """R_cam_from_local of the box fit's pose x (`_level_rotations` for one pose, written out for one:
+    it runs at every step of every fit) and, with `derivatives`, dR/d(yaw, pitch, roll) (3, 3, 3), else
+    an empty array."""
+    up = family.ground.normal
+    east, north = family.basis
+    c, s = math.cos(float(x[0])), math.sin(float(x[0]))
+    cp, sp = math.cos(float(x[1])), math.sin(float(x[1]))
+    cr, sr = math.cos(float(x[2])), math.sin(float(x[2]))
+    horizontal = c * east + s * north
+    right0 = s * east - c * north  # d horizontal / d yaw = -right0, d right0 / d yaw = horizontal
+    down0 = -sp * horizontal - cp * up
+    forward = cp * horizontal - sp * up
+    right = cr * right0 + sr * down0
+    down = -sr * right0 + cr * down0
+    R = np.stack([right, down, forward])
+    if not derivatives:
+        return R, np.zeros(0)
+    down0_pitch = -cp * horizontal + sp * up  # d down0 / d pitch
+    dR = np.array(
+        [
+            [cr * horizontal + sr * sp * right0, -sr * horizontal + cr * sp * right0, -cp * right0],
+            [sr * down0_pitch, cr * down0_pitch, down0],
+            [down, -right, np.zeros(3)],
+        ]
     )
+    return R, dR
 
 
 def _box_residuals(
