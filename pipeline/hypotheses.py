@@ -325,7 +325,7 @@ def _fit_track(
     """Pose, per-row reprojection errors (px), their median and the rotation 1-sigma (deg); or a reason.
 
     The paper's unconstrained EPnP + RANSAC first; when the track leaves the pose unfixed (a straight
-    line) or the solvers fail on it, the straight-track fit (`_solve_level`) instead (if enabled), and
+    line) or the solvers fail on it, the straight-track fit (`_checked_level`) instead (if enabled), and
     when it fixes the pose only weakly, whichever of the two reproduces the boxes' shape better.
     """
     line_residual_m = _line_residual(points)
@@ -381,38 +381,9 @@ def _checked_level(
     params: HypothesisParams,
     seed: int,
 ) -> tuple[_Pose, FloatArray, float, float] | str:
-    """`_solve_level` with the median and rotation-uncertainty tests of a free pose; or a reason."""
-    solved = _solve_level(points, pixels, shape, camera, ground, bases, params, seed)
-    if isinstance(solved, str):
-        return solved
-    level, rotation_std_deg = solved
-    errors = _reprojection_errors(points, pixels, level.rvec, level.tvec, camera)
-    median_px = float(np.median(errors))
-    if not median_px <= params.max_median_reproj_px:
-        return f"median reprojection error {median_px:.1f} px > {params.max_median_reproj_px} px"
-    if not rotation_std_deg <= params.max_rotation_std_deg:
-        return f"1-sigma {rotation_std_deg:.1f} deg"
-    return level, errors, median_px, rotation_std_deg
-
-
-def _box_misfit(pose: _Pose, shape: TrackShape, camera: CameraModel) -> float:
-    """How badly the pose reproduces the track's boxes (`pipeline.straight_track.pose_box_misfit`)."""
-    R = rotation_from_rvec(pose.rvec)
-    return pose_box_misfit(R, camera_center(R, pose.tvec), shape, camera)
-
-
-def _solve_level(
-    points: Points3,
-    pixels: Pixels,
-    shape: TrackShape,
-    camera: CameraModel,
-    ground: GroundPlaneFit,
-    bases: list[_Pose],
-    params: HypothesisParams,
-    seed: int,
-) -> tuple[_Pose, float] | str:
-    """The straight-track solver's pose (`pipeline.straight_track.solve_straight_track`) with the
-    1-sigma (deg) of its worst fitted angle; or the reason there is none.
+    """The straight-track solver's pose (`pipeline.straight_track.solve_straight_track`) with the tests of
+    a free pose: pose, per-row reprojection errors (px), their median and the 1-sigma (deg) of its worst
+    fitted angle; or the reason there is none.
 
     Starts: `bases`, poses of the line's family from the general solvers, else EPnP + RANSAC on the points
     nudged off their line; a track whose starts miss the box centres by far is another vehicle's and is
@@ -457,7 +428,20 @@ def _solve_level(
     )
     if isinstance(fit, str):
         return fit
-    return _Pose(rvec_from_rotation(fit.R), -fit.R @ fit.C, fit.solver), fit.rotation_std_deg
+    level = _Pose(rvec_from_rotation(fit.R), -fit.R @ fit.C, fit.solver)
+    errors = _reprojection_errors(points, pixels, level.rvec, level.tvec, camera)
+    median_px = float(np.median(errors))
+    if not median_px <= params.max_median_reproj_px:
+        return f"median reprojection error {median_px:.1f} px > {params.max_median_reproj_px} px"
+    if not fit.rotation_std_deg <= params.max_rotation_std_deg:
+        return f"1-sigma {fit.rotation_std_deg:.1f} deg"
+    return level, errors, median_px, fit.rotation_std_deg
+
+
+def _box_misfit(pose: _Pose, shape: TrackShape, camera: CameraModel) -> float:
+    """How badly the pose reproduces the track's boxes (`pipeline.straight_track.pose_box_misfit`)."""
+    R = rotation_from_rvec(pose.rvec)
+    return pose_box_misfit(R, camera_center(R, pose.tvec), shape, camera)
 
 
 def _solve(
