@@ -25,8 +25,9 @@ import zenoh
 
 from daemon.bus import client_config, free_loopback_port, query
 from daemon.clock import ScaledClock
+from daemon.keys import calibration_key, detections_key, status_key, v2x_key
 from daemon.main import Daemon, DaemonEvent
-from daemon.recording import detections_key, v2x_key, write_simulation_mcap
+from daemon.recording import write_simulation_mcap
 from pipeline.camera import camera_center
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame
@@ -244,7 +245,7 @@ def _or_inf(value: float | None) -> float:
 
 def _statuses(client: zenoh.Session, config: DaemonConfig) -> dict[str, CalibrationStatus]:
     statuses = {}
-    for _, payload in query(client, f"rsu/{config.rsu_id}/camera/*/calibration/status", timeout_s=2.0):
+    for _, payload in query(client, status_key(config.rsu_id, "*"), timeout_s=2.0):
         status = decode_json(CalibrationStatus, payload)
         statuses[status.camera_id] = status
     return statuses
@@ -315,7 +316,7 @@ def _wait_for_jobs(
 
 def _read_calibrations(client: zenoh.Session, config: DaemonConfig) -> dict[str, CalibrationResult]:
     results = {}
-    for _, payload in query(client, f"rsu/{config.rsu_id}/camera/*/calibration", timeout_s=2.0):
+    for _, payload in query(client, calibration_key(config.rsu_id, "*"), timeout_s=2.0):
         result = decode_json(CalibrationResult, payload)
         results[result.camera_id] = result
     return results
