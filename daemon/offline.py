@@ -25,7 +25,6 @@ from tqdm import tqdm
 
 from daemon.atomic import write_atomic
 from daemon.keys import v2x_key
-from daemon.recording import read_recording
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
@@ -162,6 +161,8 @@ def _from_mcap(
     time_offset_ns: int,
 ) -> OfflineInputs:
     # Read every camera and station, then choose: a wrong or missing choice can then list the real ones.
+    from daemon.recording import read_recording  # mcap: not loaded for the toolbox's YAML files
+
     recording = read_recording(path)
     notes = [f"{path}: {problem}" for problem in recording.problems]
     if not recording.complete:

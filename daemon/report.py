@@ -34,9 +34,9 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse, Polygon, Rectangle
 
+from pipeline.association import MatchedTrack
 from pipeline.calibrate import CalibrationDiagnostics, CalibrationOutcome
 from pipeline.camera import CameraModel, camera_center, project_points, undistort_pixels
-from pipeline.hypotheses import MatchedTrack
 from pipeline.metrics import delta_p
 from pipeline.refinement import RefinementParams, box_residuals
 from pipeline.vehicle import body_corners, footprint_corners

@@ -4,6 +4,8 @@
 of order or repeated) into a `Trajectory` in the local frame on the camera clock; `interpolate_poses`
 evaluates it at detection stamps, refusing where the poses cannot vouch for the vehicle's state (dropouts,
 stamps outside the recorded span). The paper assumes synchronous clocks; a known offset is removed here.
+`match_tracks` pairs every image track with the vehicle's poses at its stamps (`MatchedTrack`s: paper
+III-D's correspondences before the solve).
 """
 
 from __future__ import annotations
@@ -14,9 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.arrays import FloatArray, Mask, PoseArray, Stamps, check_shape
+from pipeline.arrays import Boxes, FloatArray, Mask, Pixels, PoseArray, Stamps, check_shape
 from pipeline.errors import InputError, ShapeError
 from pipeline.frames import poses_to_array
+from pipeline.tracking import ImageTrack
 from schemas.common import LocalOrigin
 from schemas.messages import VehiclePose
 
@@ -136,3 +139,70 @@ def interpolate_poses(
     is_valid |= at_lo | at_hi
     result[~is_valid] = np.nan
     return result, is_valid
+
+
+@dataclass(frozen=True, slots=True)
+class MatchedTrack:
+    """An image track restricted to the rows that got a vehicle pose (paper III-D, h_i before the solve).
+
+    stamps (N,) int64 ns camera clock, increasing; boxes (N, 4) px x1, y1, x2, y2; poses (N, 6) the
+    calibration vehicle's pose at each stamp (x, y, z m local frame; yaw, pitch, roll rad).
+    """
+
+    track_id: int
+    stamps: Stamps
+    boxes: Boxes
+    poses: PoseArray
+
+    def __post_init__(self) -> None:
+        check_shape(self.stamps, "N", name="matched_track.stamps")
+        check_shape(self.boxes, "N,4", name="matched_track.boxes")
+        check_shape(self.poses, "N,6", name="matched_track.poses")
+        if not len(self.stamps) == len(self.boxes) == len(self.poses):
+            raise ShapeError(
+                f"matched_track {self.track_id}: {len(self.stamps)} stamps, {len(self.boxes)} boxes, "
+                f"{len(self.poses)} poses"
+            )
+
+    @property
+    def box_centers(self) -> Pixels:
+        """Box centres (N, 2) px: the image half of the paper's correspondences."""
+        return np.column_stack(
+            [(self.boxes[:, 0] + self.boxes[:, 2]) / 2.0, (self.boxes[:, 1] + self.boxes[:, 3]) / 2.0]
+        )
+
+
+def match_tracks(
+    tracks: Sequence[ImageTrack], trajectory: Trajectory, params: AssociationParams
+) -> list[MatchedTrack]:
+    """Pair every image track with the calibration vehicle's poses at its stamps (paper III-D).
+
+    Tracks lying wholly outside the trajectory's time span (widened by `params.max_extrapolation_ns`)
+    are skipped before any interpolation: only tracks that overlap the vehicle's presence in time can be
+    hypotheses. Rows without a pose (dropouts, see `interpolate_poses`) are dropped; a track left with no
+    row is skipped. Order follows `tracks`.
+    """
+    if len(trajectory.stamps) == 0:
+        return []
+    span_start = int(trajectory.stamps[0]) - params.max_extrapolation_ns
+    span_end = int(trajectory.stamps[-1]) + params.max_extrapolation_ns
+    matched: list[MatchedTrack] = []
+    for track in tracks:
+        check_shape(track.stamps, "N", name=f"track {track.track_id}.stamps")
+        check_shape(track.boxes, "N,4", name=f"track {track.track_id}.boxes")
+        if len(track.stamps) == 0:
+            continue
+        if int(track.stamps.max()) < span_start or int(track.stamps.min()) > span_end:
+            continue  # cheap skip: no pose can exist for any row
+        poses, has_pose = interpolate_poses(trajectory, track.stamps, params)
+        if not np.any(has_pose):
+            continue
+        matched.append(
+            MatchedTrack(
+                track_id=track.track_id,
+                stamps=track.stamps[has_pose],
+                boxes=track.boxes[has_pose],
+                poses=poses[has_pose],
+            )
+        )
+    return matched

@@ -28,21 +28,20 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from pipeline.arrays import FloatArray, Rotation, Vec3
-from pipeline.association import AssociationParams, Trajectory, make_trajectory
+from pipeline.association import (
+    AssociationParams,
+    MatchedTrack,
+    Trajectory,
+    make_trajectory,
+    match_tracks,
+)
 from pipeline.attitude import with_path_pitch
 from pipeline.camera import CameraModel, quaternion_wxyz_from_rotation, rotation_angle_rad
 from pipeline.errors import DegenerateGeometry
 from pipeline.frames import UtmFrame
 from pipeline.ground import GroundPlaneFit, fit_ground_plane
 from pipeline.grouping import GroupingParams, group_hypotheses
-from pipeline.hypotheses import (
-    Hypothesis,
-    HypothesisParams,
-    MapFn,
-    MatchedTrack,
-    create_hypotheses,
-    match_tracks,
-)
+from pipeline.hypotheses import Hypothesis, HypothesisParams, MapFn, create_hypotheses
 from pipeline.metrics import DeltaPSummary, delta_p
 from pipeline.refinement import (
     Refinement,

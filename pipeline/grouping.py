@@ -18,9 +18,10 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Points3, Vec3, check_shape
+from pipeline.association import MatchedTrack
 from pipeline.camera import CameraModel, project_points_cam, undistort_pixels
 from pipeline.errors import InputError
-from pipeline.hypotheses import Hypothesis, HypothesisSet, MatchedTrack
+from pipeline.hypotheses import Hypothesis, HypothesisSet
 from pipeline.tracking import FrameBoxes
 from pipeline.vehicle import body_centers
 from schemas.common import VehicleProfile

@@ -35,6 +35,7 @@ from pipeline.arrays import (
     Vec3,
     check_shape,
 )
+from pipeline.association import MatchedTrack
 from pipeline.camera import (
     CameraModel,
     camera_center,
@@ -44,7 +45,6 @@ from pipeline.camera import (
 )
 from pipeline.errors import DegenerateGeometry, ShapeError
 from pipeline.ground import GroundPlaneFit
-from pipeline.hypotheses import MatchedTrack
 from pipeline.metrics import DeltaPParams, delta_p
 from pipeline.vehicle import body_corners
 from schemas.common import VehicleProfile

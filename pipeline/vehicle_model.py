@@ -39,10 +39,9 @@ import numpy as np
 from scipy.optimize import least_squares, nnls
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, Stamps, Vec3
-from pipeline.association import Trajectory
+from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import CameraModel, camera_center, rotation_from_ypr
 from pipeline.errors import DegenerateGeometry
-from pipeline.hypotheses import MatchedTrack
 from pipeline.refinement import (
     _camera_points,
     _camera_points_jacobian,

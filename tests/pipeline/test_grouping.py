@@ -10,17 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.association import Trajectory
+from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import CameraModel, camera_rotation_from_view, project_points
 from pipeline.ground import GroundPlaneFit
 from pipeline.grouping import GroupingParams, GroupingResult, dbscan_labels, group_hypotheses
-from pipeline.hypotheses import (
-    Hypothesis,
-    HypothesisParams,
-    HypothesisSet,
-    MatchedTrack,
-    create_hypotheses,
-)
+from pipeline.hypotheses import Hypothesis, HypothesisParams, HypothesisSet, create_hypotheses
 from pipeline.tracking import FrameBoxes
 from pipeline.vehicle import body_centers, body_corners
 from schemas.common import CameraIntrinsics, VehicleProfile

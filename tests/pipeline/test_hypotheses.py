@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.association import AssociationParams, Trajectory
+from pipeline.association import AssociationParams, MatchedTrack, Trajectory, match_tracks
 from pipeline.camera import (
     CameraModel,
     camera_center,
@@ -19,13 +19,8 @@ from pipeline.camera import (
 )
 from pipeline.errors import ShapeError
 from pipeline.ground import GroundPlaneFit
-from pipeline.hypotheses import (
-    HypothesisParams,
-    HypothesisSet,
-    MatchedTrack,
-    create_hypotheses,
-    match_tracks,
-)
+from pipeline.hypotheses import HypothesisParams, HypothesisSet, create_hypotheses
+from pipeline.straight_track import StraightTrackParams
 from pipeline.tracking import ImageTrack
 from pipeline.vehicle import body_centers, body_corners
 from schemas.common import CameraIntrinsics, VehicleProfile
@@ -345,7 +340,9 @@ def test_level_prior_error_follows_the_camera_roll() -> None:
     (hypothesis,) = solve_one(track, camera).hypotheses
     assert hypothesis.solver == "level"
     assert math.radians(0.4) < rotation_angle_rad(hypothesis.R_cam_from_local, R) < math.radians(1.0)
-    (measured,) = solve_one(track, camera, HypothesisParams(mount_snap_deg=0.0)).hypotheses
+    (measured,) = solve_one(
+        track, camera, HypothesisParams(straight_track=StraightTrackParams(mount_snap_deg=0.0))
+    ).hypotheses
     assert measured.solver == "box-roll"
     assert rotation_angle_rad(measured.R_cam_from_local, R) < math.radians(0.05)
 
@@ -415,7 +412,9 @@ def test_tilted_camera_is_measured_not_assumed_square() -> None:
     (measured,) = solve_one(track, camera).hypotheses
     assert measured.solver == "box-roll"
     assert rotation_angle_rad(measured.R_cam_from_local, R) < math.radians(0.5)
-    (assumed,) = solve_one(track, camera, HypothesisParams(roll_from_box_shape=False)).hypotheses
+    (assumed,) = solve_one(
+        track, camera, HypothesisParams(straight_track=StraightTrackParams(roll_from_box_shape=False))
+    ).hypotheses
     assert assumed.solver == "level"
     assert rotation_angle_rad(assumed.R_cam_from_local, R) > math.radians(5.0)
 
@@ -430,7 +429,7 @@ def test_upside_down_camera_is_rejected_unless_assumed(heading_deg: float) -> No
     result = solve_one(track, camera)
     assert result.hypotheses == ()
     assert "not within 15.0 deg of [0.0, 90.0, -90.0] deg" in result.rejected[1]
-    mounts = HypothesisParams(mount_rolls_deg=(0.0, 90.0, -90.0, 180.0))
+    mounts = HypothesisParams(straight_track=StraightTrackParams(mount_rolls_deg=(0.0, 90.0, -90.0, 180.0)))
     (hypothesis,) = solve_one(track, camera, mounts).hypotheses
     assert hypothesis.solver == "level+180"
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-6

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.association import MatchedTrack
 from pipeline.camera import (
     CameraModel,
     camera_center,
@@ -21,7 +22,6 @@ from pipeline.camera import (
 )
 from pipeline.errors import DegenerateGeometry, ShapeError
 from pipeline.ground import GroundPlaneFit, fit_ground_plane
-from pipeline.hypotheses import MatchedTrack
 from pipeline.metrics import delta_p
 from pipeline.refinement import (
     Refinement,

@@ -14,10 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.association import Trajectory
+from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import CameraModel, camera_rotation_from_view, rotation_angle_rad, rotation_from_rvec
 from pipeline.errors import DegenerateGeometry
-from pipeline.hypotheses import MatchedTrack
 from pipeline.refinement import _clipped_edges
 from pipeline.vehicle_model import (
     _BIAS,
