@@ -7,10 +7,11 @@ images). Bodies are drawn far to near and, within a body, face by face far to ne
 lit by a fixed sun; occluders take part in the same order. The images feed foxglove.CompressedImage
 channels (`rsucal simulate --images`), so a recording shows the scene and the image path can be tried.
 
-`keyed=True` paints every vehicle (the calibration vehicle like any other) and its wheels in one of three
-key colours (KEY_PAINTS: saturated red, blue, magenta, shaded like any paint) that nothing else in the
-scene has: sim.key_detector's ONNX model finds vehicles by those colours, so `rsucal demo --images` can run
-the daemon's image path without a trained detector (none ships with rsucal).
+`keyed=True` paints every vehicle (the calibration vehicle like any other) and its wheels in one of four
+key colours (KEY_PAINTS: saturated red, blue, magenta, green, shaded like any paint) that nothing else in
+the scene has, in turn by vehicle number (vehicles that follow each other mostly differ):
+sim.key_detector's ONNX model finds vehicles by those colours, so `rsucal demo --images` can run the
+daemon's image path without a trained detector (none ships with rsucal).
 """
 
 from __future__ import annotations
@@ -42,16 +43,17 @@ PAINTS = (
     (150, 180, 200),
 )
 CALIBRATION_PAINT = (20, 140, 250)  # the calibration vehicle: orange, like its boxes in the recordings
-# Key colours (BGR) of `keyed` images: green is (near) zero in each, which no sky, ground, road, marking or
-# occluder colour of sim.preview comes close to; wheels get the body's key at KEY_WHEEL_SHADE.
-KEY_PAINTS = ((0, 0, 255), (255, 0, 0), (255, 0, 255))
+# Key colours (BGR) of `keyed` images, sim.key_detector's classes 0-3: green near zero in the first three, red
+# and blue in the last, which no sky, ground, road, marking or occluder colour of sim.preview comes close to;
+# wheels get the body's key at KEY_WHEEL_SHADE.
+KEY_PAINTS = ((0, 0, 255), (255, 0, 0), (255, 0, 255), (0, 255, 0))
 KEY_WHEEL_SHADE = 0.5
 _SUB = 4  # cv2 fixed-point drawing: 4 fractional bits
 
 
 def _paint(vehicle: int, keyed: bool = False) -> tuple[int, int, int]:
     if keyed:  # the same rule for every vehicle: the key tells nothing about which is the calibration one
-        return KEY_PAINTS[zlib.crc32(vehicle.to_bytes(4, "little")) % len(KEY_PAINTS)]
+        return KEY_PAINTS[vehicle % len(KEY_PAINTS)]
     if vehicle == 0:
         return CALIBRATION_PAINT
     return PAINTS[zlib.crc32(vehicle.to_bytes(4, "little")) % len(PAINTS)]

@@ -4,18 +4,19 @@ No trained vehicle detector ships with rsucal (none in the package registry come
 are never downloaded), yet `rsucal demo --images` should run the daemon's whole image path: JPEG in,
 letterbox, onnxruntime, the YOLOv8 decoder, NMS, the label map, DetectionFrames out. This module builds a
 model that does that on `sim.images.render_images(..., keyed=True)` images, where every vehicle (wheels
-included) is painted in one of three key colours no other surface has. It is not a learned detector: it
+included) is painted in one of four key colours no other surface has. It is not a learned detector: it
 finds pixels of those colours, and boxes around connected areas of them, with ordinary ONNX operators:
 
-1. key mask: a pixel is a vehicle's when max(R, B) > KEY_MIN_LEVEL and G < KEY_MAX_GREEN * max(R, B)
-   (saturated red, blue, magenta, however the sun shades them); its class is red (0) when B < KEY_HUE_RATIO
-   * R, blue (1) when R < KEY_HUE_RATIO * B, else magenta (2);
+1. key mask: a pixel is a vehicle's when max(R, B) > KEY_MIN_LEVEL and G < KEY_OTHER * max(R, B)
+   (saturated red, blue, magenta, however the sun shades them): class red (0) when B < KEY_HUE_RATIO * R,
+   blue (1) when R < KEY_HUE_RATIO * B, else magenta (2); or when G > KEY_MIN_LEVEL and max(R, B) <
+   KEY_OTHER * G: green (3);
 2. per CELL x CELL cell and class (MaxPool, AveragePool): the extent of its key pixels (min x, min y,
    max x + 1, max y + 1, network px) and the fraction of the cell they cover;
 3. connected cells (3 x 3 neighbourhood, per class) share their extents: a Loop of MaxPool steps until
    nothing changes (at most cells-many), so every cell of one area holds the area's box and its best
    coverage fraction as the score;
-4. output (1, 4 + 3, 3 * cells): cx, cy, w, h and one-hot class scores per (class, cell), YOLOv8's layout;
+4. output (1, 4 + 4, 4 * cells): cx, cy, w, h and one-hot class scores per (class, cell), YOLOv8's layout;
    the daemon's NMS keeps one of each area's identical boxes.
 
 Two vehicles of one key colour whose areas touch (within a cell) come out as one box, and a vehicle cut by
@@ -36,9 +37,9 @@ INPUT_WIDTH = 960  # a 1920 x 1200 (or 1080) camera image at half scale, letterb
 INPUT_HEIGHT = 608
 CELL = 8  # network px per cell side: areas closer than this merge
 KEY_MIN_LEVEL = 0.1
-KEY_MAX_GREEN = 0.3
+KEY_OTHER = 0.3
 KEY_HUE_RATIO = 0.5
-KEY_CLASSES = ("red", "blue", "magenta")  # the model's class ids 0, 1, 2 (sim.images.KEY_PAINTS order)
+KEY_CLASSES = ("red", "blue", "magenta", "green")  # the model's class ids 0-3 (sim.images.KEY_PAINTS order)
 OPSET = 17
 
 
@@ -78,14 +79,20 @@ def build_model(width: int = INPUT_WIDTH, height: int = INPUT_HEIGHT, cell: int 
     red, green, blue = channel(0, "r"), channel(1, "g"), channel(2, "b")
     level = node("Max", [red, blue], "level")
     bright = node("Greater", [level, const("min_level", f32(KEY_MIN_LEVEL))], "bright")
-    grey_limit = node("Mul", [level, const("max_green", f32(KEY_MAX_GREEN))], "green_limit")
-    keyed = node("And", [bright, node("Less", [green, grey_limit], "no_green")], "keyed")
+    other = const("key_other", f32(KEY_OTHER))
+    green_limit = node("Mul", [level, other], "green_limit")
+    keyed = node("And", [bright, node("Less", [green, green_limit], "no_green")], "keyed")
     ratio = const("hue_ratio", f32(KEY_HUE_RATIO))
     is_red = node("And", [keyed, node("Less", [blue, node("Mul", [red, ratio], "r_ratio")], "b_low")], "m0")
     is_blue = node("And", [keyed, node("Less", [red, node("Mul", [blue, ratio], "b_ratio")], "r_low")], "m1")
     either = node("Or", [is_red, is_blue], "red_or_blue")
     is_magenta = node("And", [keyed, node("Not", [either], "neither")], "m2")
-    masks = [node("Cast", [m], f"{m}_f", to=TensorProto.FLOAT) for m in (is_red, is_blue, is_magenta)]
+    green_bright = node("Greater", [green, "min_level"], "g_bright")
+    red_blue_low = node("Less", [level, node("Mul", [green, other], "rb_limit")], "rb_low")
+    is_green = node("And", [green_bright, red_blue_low], "m3")
+    masks = [
+        node("Cast", [m], f"{m}_f", to=TensorProto.FLOAT) for m in (is_red, is_blue, is_magenta, is_green)
+    ]
     mask = node("Concat", masks, "mask", axis=1)
 
     # 2. per cell and class: extents of the key pixels (as maxima: W - x and H - y for the minima) and cover
@@ -107,7 +114,7 @@ def build_model(width: int = INPUT_WIDTH, height: int = INPUT_HEIGHT, cell: int 
         for name, coord in (("left", left), ("top", top), ("right", right), ("bottom", bottom))
     ]
     cover = node("AveragePool", [mask], "cover", **pool)
-    state = node("Concat", [*extents, cover], "state0", axis=1)  # (1, 5 * 3, rows, cols): quantity-major
+    state = node("Concat", [*extents, cover], "state0", axis=1)  # (1, 5 * classes, rows, cols): by quantity
     occupied = node(
         "Cast", [node("Greater", [cover, const("zero", f32(0.0))], "has_key")], "occ", to=TensorProto.FLOAT
     )
