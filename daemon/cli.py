@@ -352,7 +352,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         preset=args.preset,
         seed=args.seed,
         rate=args.rate,
-        timeout_s=args.timeout,
+        timeout_s=args.timeout if args.timeout is not None else (3600.0 if args.images else 300.0),
         ideal=args.ideal,
         keep_dir=Path(args.keep) if args.keep else None,
         images=args.images,
@@ -543,7 +543,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=_positive_seconds, default=20.0, help="time acceleration, > 0 (default 20x)"
     )
     demo.add_argument(
-        "--timeout", type=_positive_seconds, default=300.0, help="give up after this many seconds"
+        "--timeout",
+        type=_positive_seconds,
+        help="give up after this many seconds (default 300; 3600 with --images)",
     )
     demo.add_argument(
         "--ideal",

@@ -151,17 +151,10 @@ def _render_process(
     CompressedImage payload) of every frame of every camera, stamp order, and None at the end."""
     try:
         from daemon.images import encode_compressed_image
-        from sim.images import render_images
         from sim.simulate import simulate
 
         sim = simulate(preset, seed, ideal=ideal)
-        streams = [
-            (
-                (stamp, image_key(sim.rsu_id, camera.camera_id), camera.camera_id, image)
-                for stamp, image in render_images(sim, camera.camera_id, 1, keyed=keyed)
-            )
-            for camera in sim.cameras
-        ]
+        streams = [_frames(sim, camera.camera_id, keyed) for camera in sim.cameras]
         for stamp, key, camera_id, image in heapq.merge(*streams, key=lambda item: (item[0], item[1])):
             payload = encode_compressed_image(image, stamp, camera_id, "jpeg", jpeg_quality=JPEG_QUALITY)
             if not _put(out, (key, stamp, payload), stop):
@@ -169,6 +162,15 @@ def _render_process(
         _put(out, None, stop)
     except Exception as err:
         _put(out, ("error", f"{type(err).__name__}: {err}"), stop)
+
+
+def _frames(sim: Any, camera_id: str, keyed: bool) -> Iterator[tuple[int, str, str, Any]]:
+    """(stamp_ns, image key, camera id, BGR image) of every frame of one camera."""
+    from sim.images import render_images
+
+    key = image_key(sim.rsu_id, camera_id)
+    for stamp_ns, image in render_images(sim, camera_id, 1, keyed=keyed):
+        yield stamp_ns, key, camera_id, image
 
 
 def _put(out: Any, item: Any, stop: Any) -> bool:

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import contextlib
 import io
+import itertools
 import json
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,8 +17,9 @@ from helpers import free_port, wait_until
 from mcap.reader import make_reader
 
 from daemon import cli
-from daemon.demo import run_demo
-from daemon.demo_images import COCO_LABELS, ReplayClock, image_setup
+from daemon.demo import run_demo, simulation_messages
+from daemon.demo_images import COCO_LABELS, RenderedImages, ReplayClock, image_setup
+from daemon.images import decode_compressed_image
 from sim.presets import PRESETS, ScenarioConfig
 from sim.simulate import simulate
 
@@ -124,3 +127,25 @@ def test_the_replay_clock_follows_the_messages_then_runs_on() -> None:
     released_at = clock.now_ns()
     assert 5_000 <= released_at < 10**12
     wait_until(lambda: clock.now_ns() > released_at, timeout_s=5.0)
+
+
+def test_the_renderer_sends_every_cameras_images_in_the_replays_order() -> None:
+    # Two cameras (sil-west): the renderer process merges their frames into the order of the replay.
+    base = PRESETS["sil-west"]
+    scene = replace(base, traffic=replace(base.traffic, count=3), detector=replace(base.detector, fps=5.0))
+    sim = simulate(scene, 0)
+    slots = [(m.key, m.stamp_ns) for m in simulation_messages(sim, images=True) if m.key.endswith("/image")]
+    assert len(slots) == sum(len(frames) for frames in sim.detections.values())
+    assert {key.split("/")[3] for key, _ in slots[:12]} == {"west-junction", "west-arm"}
+    rendered = RenderedImages(scene, 0, False, keyed=True)
+    rendered.start()
+    try:
+        first = list(itertools.islice(rendered.images(threading.Event()), 12))
+    finally:
+        rendered.close()
+    assert [(key, stamp_ns) for key, stamp_ns, _ in first] == slots[:12]
+    sizes = {c.camera_id: (c.intrinsics.height, c.intrinsics.width, 3) for c in sim.cameras}
+    for key, stamp_ns, payload in first:
+        image = decode_compressed_image(payload)
+        camera_id = key.split("/")[3]
+        assert (image.stamp_ns, image.frame_id, image.image.shape) == (stamp_ns, camera_id, sizes[camera_id])
