@@ -20,6 +20,8 @@ Columns (aggregated per preset over all cameras and seeds):
   floor      the true calibration on the same boxes: delta_p mean (m) / e_m (%), mean over all runs
   cover      accepted runs whose position or rotation error exceeds 3 x the reported std / accepted runs
   lat ms     the cameras' true latency (detection stamp minus exposure), mean over runs (unknown to rsucal)
+  lat err    accepted runs: |estimated time offset - true one| (ms), mean / max (the truth: vehicle clock
+             offset minus the latency); target within 10 ms
   area       the calibration vehicle's detected box area / its data-sheet cuboid's rectangle, mean over
              frames where the cuboid lies wholly inside the image and the box is no merge or split
 Exit code 0 when every target passes, 1 otherwise. Per-run failures are printed under the table.
@@ -403,6 +405,7 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
             "truth_traversals": truth.traversals,
             "truth_boxes": sum(f.calib_box is not None for f in truth.frames),
             "latency_ms": truth.latency_ns / 1e6,
+            "true_time_offset_ms": (truth.clock_offset_ns - truth.latency_ns) / 1e6,
             "vehicle_type": truth.vehicle_type,
             "box_area_ratio": box_area_ratio(truth),
         }
@@ -424,6 +427,15 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
                 rotation_error_deg=evaluation.rotation_error_deg,
                 position_std_m=result.uncertainty.position_std_m if result.uncertainty else None,
                 rotation_std_deg=result.uncertainty.rotation_std_deg if result.uncertainty else None,
+                time_offset_ms=None if result.time_offset_ns is None else result.time_offset_ns / 1e6,
+                time_offset_std_ms=None
+                if result.time_offset_std_ns is None
+                else result.time_offset_std_ns / 1e6,
+                time_offset_error_ms=(
+                    None
+                    if result.time_offset_ns is None
+                    else abs(result.time_offset_ns / 1e6 - (truth.clock_offset_ns - truth.latency_ns) / 1e6)
+                ),
                 boxes_used=evaluation.boxes_used,
                 boxes_total=evaluation.boxes_total,
                 **_evaluation_fields(evaluation),
@@ -502,6 +514,8 @@ def summarise(preset: str, runs: Sequence[Run]) -> dict[str, Any]:
         "floor_e_mean_pct": _mean([r.get("floor_e_mean_pct") for r in runs]),
         "beyond_3_std": sum(beyond_reported(r) for r in accepted),
         "latency_ms": _mean([r.get("latency_ms") for r in runs]),
+        "offset_error_mean_ms": _mean([r.get("time_offset_error_ms") for r in accepted]),
+        "offset_error_max_ms": _max([r.get("time_offset_error_ms") for r in accepted]),
         "box_area_ratio": _mean([r.get("box_area_ratio") for r in runs]),
         "paper": PAPER.get(preset, ""),
         "target": target.text if target else "(none)",
@@ -538,6 +552,7 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
         "floor dp/e_m",
         "cover",
         "lat ms",
+        "lat err",
         "area",
         "paper",
         "target",
@@ -560,6 +575,7 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
                 _pair(s["floor_delta_p_mean_m"], s["floor_e_mean_pct"], ".3f"),
                 f"{s.get('beyond_3_std', 0)}/{s['accepted']}" if s["accepted"] else "-",
                 _fmt(s.get("latency_ms"), ".0f"),
+                _pair(s.get("offset_error_mean_ms"), s.get("offset_error_max_ms"), ".1f"),
                 _fmt(s.get("box_area_ratio"), ".3f"),
                 s["paper"],
                 s["target"],
@@ -567,7 +583,7 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
             )
         )
     rows.append(
-        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "", "", "",
+        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "", "", "", "",
          "false accepts = 0", "PASS" if false_accepts == 0 and errors == 0 else "FAIL")
     )  # fmt: skip
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]

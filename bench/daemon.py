@@ -1,7 +1,8 @@
 """Daemon load benchmark (issue 4): ingest throughput with MCAP logging, memory over a simulated day, and the
 time from the end of the quiet period to the calibration on the bus. Not part of the test suite.
 
-    python -m bench.daemon [--part sustained|ceiling|rss|latency|detector|profile|all] [--json out.json]
+    python -m bench.daemon [--part sustained|ceiling|rss|latency|detector|profile|reverify|all]
+                           [--json out.json]
 
 The mix: 4 cameras at 10 fps with 30 boxes per frame (the sil-west simulator's detector boxes, each frame
 filled up with boxes of the camera's later frames, so coordinates and JSON sizes are a detector's: ~4 kB)
@@ -41,8 +42,13 @@ daemon (its inbox), never dropped by the publisher.
   profile    (not in `all`) where the ingest time goes at --profile-rate messages/s: cProfile of a Daemon's
              ingest thread, the bus callback's cost, and (when py-spy is installed) py-spy of `rsucal daemon`,
              all threads and only the one holding the GIL.
+  reverify   re-verifications of a static camera (issue 10 part 7): the moved-camera scene without its move,
+             --reverify-seeds seeds (20), in the ideal world unless --reverify-real; per seed the daemon's job
+             (run_job, in this process) on drive-pasts 1-4, then on 5-8 alone, the second judged against the
+             first by daemon.publication.decide: shift, its std and limit, and whether a move was flagged.
 Targets: ceiling >= 20,000 messages/s with zero loss; RSS at the end within 10 % of RSS after the first
-simulated hour; quiet-period end -> calibration on the bus <= 10 s. Exit 1 when one fails.
+simulated hour; quiet-period end -> calibration on the bus <= 10 s; no move flagged on a static camera.
+Exit 1 when one fails.
 """
 
 from __future__ import annotations
@@ -171,7 +177,9 @@ class Site:
     @property
     def keys(self) -> tuple[str, ...]:
         """Bus keys by index: the cameras' detections, then the vehicle's V2X."""
-        return (*(f"rsu/{RSU_ID}/camera/{c}/detections" for c in self.camera_ids), f"v2x/cam/{STATION_ID}")
+        from daemon.keys import detections_key, v2x_key
+
+        return (*(detections_key(RSU_ID, c) for c in self.camera_ids), v2x_key(STATION_ID))
 
     @property
     def loop_s(self) -> float:
@@ -544,7 +552,8 @@ def to_sample(health: Health, pid: int | None) -> Sample:
 
 def query_health(session: zenoh.Session, timeout_s: float = HEALTH_TIMEOUT_S) -> Health | None:
     """The daemon's health over the bus, as any monitoring client reads it."""
-    from daemon.bus import health_key, query
+    from daemon.bus import query
+    from daemon.keys import health_key
     from schemas.common import decode_json
     from schemas.results import Health
 
@@ -1010,8 +1019,9 @@ def run_rss(hours: int, rate: float, divisor: int, trace: bool = False) -> dict[
     tracemalloc runs too (slower): Python-allocated bytes per hour and the lines that grew after hour 1."""
     import tracemalloc
 
-    from daemon.bus import free_loopback_port, query, status_key
+    from daemon.bus import free_loopback_port, query
     from daemon.clock import ScaledClock
+    from daemon.keys import status_key
     from daemon.main import Daemon, DaemonEvent
     from schemas.config import JobsConfig, StorageConfig, TriggerConfig
 
@@ -1209,9 +1219,10 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
     """The `long` preset into a Daemon; per job: quiet-period end -> job start -> result on the bus."""
     import zenoh
 
-    from daemon.bus import calibration_key, free_loopback_port
+    from daemon.bus import free_loopback_port
     from daemon.clock import ScaledClock
     from daemon.demo import demo_config, publish_messages, simulation_messages
+    from daemon.keys import calibration_key
     from daemon.main import Daemon, DaemonEvent
     from schemas.config import JobsConfig
     from sim.simulate import simulate
@@ -1236,7 +1247,7 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
         with lock:
             if event.kind == "job_started":
                 # Called on the ingest thread right after the tracker was found due: its last leave counts.
-                snapshot = holder["daemon"].trackers[event.camera_id].snapshot()
+                snapshot = holder["daemon"].tracker_snapshot(event.camera_id)
                 left_ns = snapshot.last_left_received_ns
                 quiet_end = wall_of(left_ns + quiet_ns) if left_ns is not None else math.nan
                 jobs.append(
@@ -1599,7 +1610,8 @@ def run_detector(seconds: float, cameras: int, fps: float) -> dict[str, Any]:
 
     from daemon.bus import client_config, free_loopback_port
     from daemon.detector import OnnxDetector, decode_output, letterbox, network_input, postprocess
-    from daemon.images import decode_compressed_image, encode_compressed_image, image_key
+    from daemon.images import decode_compressed_image, encode_compressed_image
+    from daemon.keys import image_key
     from daemon.main import Daemon
     from schemas.config import DetectorConfig
 
@@ -1757,10 +1769,157 @@ def print_detector(r: dict[str, Any]) -> None:
     )
 
 
+# ------------------------------------------------------------------------------------------------- reverify
+
+REVERIFY_TRAVERSALS = 4  # drive-pasts per job: the first calibration, then the re-verification
+
+
+def run_reverify(seeds: int, ideal: bool, moved: bool = False) -> dict[str, Any]:
+    """Re-verifications of a static camera: the moved-camera scene without its move, per seed the daemon's
+    job (daemon.jobs.run_job, in this process) on the first four drive-pasts, then on the last four alone
+    (as the daemon windows a calibrated camera's next job), judged by daemon.publication.decide. With
+    `moved` the scene keeps its move (0.4 m, 0.6 deg after the fourth drive-past): each run must flag it."""
+    from daemon.jobs import JobOutcome, JobSpec, new_job_id, run_job
+    from daemon.publication import change_limits, decide
+    from daemon.recording import write_simulation_mcap
+    from daemon.state import CameraState
+    from schemas.config import ChangeConfig, GatesConfig
+    from schemas.results import CalibrationResult
+    from sim.simulate import resolve_config, simulate
+
+    scene = resolve_config("moved-camera")
+    if not moved:
+        scene = replace(scene, camera_move=None)
+    change = ChangeConfig()
+    runs: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="rsucal-reverify-") as tmp:
+        for seed in range(seeds):
+            sim = simulate(scene, seed, ideal=ideal)
+            mcap = write_simulation_mcap(sim, Path(tmp) / f"seed-{seed}.mcap")
+            camera = sim.cameras[0]
+            spans: dict[int, tuple[int, int]] = {}
+            for frame in sim.ground_truth[camera.camera_id].frames:
+                if frame.calib_box is not None and frame.traversal is not None:
+                    begin, end = spans.get(frame.traversal, (frame.stamp_ns, frame.stamp_ns))
+                    spans[frame.traversal] = (min(begin, frame.stamp_ns), max(end, frame.stamp_ns))
+            ordered = [spans[k] for k in sorted(spans)]
+            split_ns = (ordered[REVERIFY_TRAVERSALS - 1][1] + ordered[REVERIFY_TRAVERSALS][0]) // 2
+            stamps = [m.stamp_ns for m in sim.v2x]
+
+            base = JobSpec(
+                job_id="",
+                rsu_id=sim.rsu_id,
+                camera_id=camera.camera_id,
+                intrinsics=camera.intrinsics,
+                vehicle=sim.vehicle,
+                station_id=sim.station_id,
+                # The site's configured offset (the daemon's prior): the truth's clock offset, as in tests.
+                time_offset_ns=sim.ground_truth[camera.camera_id].clock_offset_ns,
+                crs=sim.origin.crs,
+                recordings=(str(mcap),),
+                window_start_ns=0,
+                window_end_ns=0,
+                gates=GatesConfig(),
+                seed=0,
+                track_workers=1,
+                created_at_ns=0,
+                config_hash="bench-reverify",
+            )
+
+            def job(base: JobSpec, start_ns: int, end_ns: int, created_at_ns: int) -> JobOutcome:
+                job_id = new_job_id(base.camera_id, created_at_ns)
+                return run_job(
+                    replace(
+                        base,
+                        job_id=job_id,
+                        window_start_ns=start_ns,
+                        window_end_ns=end_ns,
+                        created_at_ns=created_at_ns,
+                    )
+                )
+
+            created_ns = max(stamps)
+            first = job(base, min(stamps) - 10 * 10**9, split_ns, created_ns)
+            second = job(base, split_ns + 1, max(stamps) + 10 * 10**9, created_ns + 10**9)
+            run: dict[str, Any] = {"seed": seed, "first": None, "second": None, "decision": None}
+            current = None
+            if first.result_json is not None:
+                current = CalibrationResult.model_validate_json(first.result_json)
+                run["first"] = current.verdict.status
+            if second.result_json is not None:
+                run["second"] = CalibrationResult.model_validate_json(second.result_json).verdict.status
+            if current is not None and current.verdict.is_accepted:
+                state = CameraState(current_result_id=current.result_id, used_until_ns=split_ns)
+                decision = decide(
+                    second,
+                    current,
+                    state,
+                    change,
+                    window_end_ns=max(stamps),
+                    started_ns=created_ns,
+                    now_ns=created_ns,
+                )
+                run["decision"] = decision.event
+                info = decision.result.change if decision.result is not None else None
+                if info is not None:
+                    limit_m, limit_deg = change_limits(info)
+                    run.update(
+                        moved=info.moved,
+                        shift_m=info.shift_m,
+                        shift_deg=info.shift_deg,
+                        limit_m=limit_m,
+                        limit_deg=limit_deg,
+                        std_m=info.shift_std_m,
+                        std_deg=info.shift_std_deg,
+                    )
+            runs.append(run)
+            print(f"    seed {seed}: {json.dumps(run, default=str)}", flush=True)
+    compared = [r for r in runs if "moved" in r]
+    flagged = [r for r in compared if r["moved"]]
+    return {
+        "seeds": seeds,
+        "ideal": ideal,
+        "moved": moved,
+        "runs": runs,
+        "compared": len(compared),
+        "flagged_moved": len(flagged),
+        "passed": len(flagged) == len(compared) if moved else not flagged,
+    }
+
+
+def print_reverify(r: dict[str, Any]) -> None:
+    world = "ideal" if r["ideal"] else "realistic"
+    what = "a moved camera (moved-camera" if r["moved"] else "a static camera (moved-camera without its move"
+    print(
+        f"\nreverify: {what}, {world} world), {r['seeds']} seeds; "
+        f"calibrated on drive-pasts 1-4, re-verified on 5-8 alone"
+    )
+    print(
+        f"  {'seed':>4}  {'first':>8}  {'second':>8}  {'shift m':>8}  {'limit m':>8}  {'std m':>7}  "
+        f"{'shift deg':>9}  {'limit deg':>9}  {'std deg':>7}  decision"
+    )
+    for run in r["runs"]:
+        if "moved" in run:
+            numbers = (
+                f"{run['shift_m']:8.3f}  {run['limit_m']:8.3f}  {run['std_m']:7.3f}  "
+                f"{run['shift_deg']:9.3f}  {run['limit_deg']:9.3f}  {run['std_deg']:7.3f}"
+            )
+        else:
+            numbers = f"{'-':>8}  {'-':>8}  {'-':>7}  {'-':>9}  {'-':>9}  {'-':>7}"
+        print(
+            f"  {run['seed']:>4}  {run['first'] or 'failed':>8}  {run['second'] or 'failed':>8}  {numbers}  "
+            f"{run['decision'] or '-'}"
+        )
+    print(
+        f"  compared {r['compared']} of {r['seeds']} (both fits accepted or the second refused); "
+        f"flagged moved: {r['flagged_moved']} (target {r['compared'] if r['moved'] else 0})"
+    )
+
+
 # ------------------------------------------------------------------------------------------------- main
 
-PARTS = ("sustained", "ceiling", "rss", "latency", "detector", "profile")
-ALL_PARTS = ("sustained", "ceiling", "rss", "latency")
+PARTS = ("sustained", "ceiling", "rss", "latency", "detector", "profile", "reverify")
+ALL_PARTS = ("sustained", "ceiling", "rss", "latency", "reverify")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -1797,6 +1956,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--profile-rate", type=float, default=15_000.0, help="profile: messages/s")
     parser.add_argument("--detector-cameras", type=int, default=2, help="detector: cameras with a detector")
     parser.add_argument("--detector-fps", type=float, default=10.0, help="detector: images/s per camera")
+    parser.add_argument("--reverify-seeds", type=int, default=20, help="reverify: simulator seeds")
+    parser.add_argument(
+        "--reverify-real", action="store_true", help="reverify: the realistic world (default: the ideal one)"
+    )
+    parser.add_argument(
+        "--reverify-moved", action="store_true", help="reverify: keep the move (each run must flag it)"
+    )
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args(argv)
     parts = ALL_PARTS if args.part == "all" else (args.part,)
@@ -1827,6 +1993,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif part == "detector":
             result = run_detector(args.seconds, args.detector_cameras, args.detector_fps)
             print_detector(result)
+        elif part == "reverify":
+            ideal, moved = not args.reverify_real, args.reverify_moved
+            result = run_reverify(args.reverify_seeds, ideal=ideal, moved=moved)
+            print_reverify(result)
         else:
             result = run_profile(args.profile_rate, args.step_s)
             print_profile(result)

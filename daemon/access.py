@@ -28,7 +28,7 @@ from typing import Any
 import zenoh
 
 from daemon.bus import BusError, session_config, zenoh_message
-from daemon.recording import detections_key, image_key, v2x_key
+from daemon.keys import ALL_V2X, detections_key, image_key, v2x_key
 from pipeline.errors import InputError
 from schemas.config import DaemonConfig
 
@@ -348,11 +348,11 @@ def access_problems(config: DaemonConfig, rules: AccessRules, *, owns_rules: boo
                     problems.append(f"{owner}: {label} may {message} {key} (rule {', '.join(rule_ids)})")
 
     vehicle_names = sorted({name for vehicle in config.vehicles for name in vehicle.common_names()})
-    own_inputs = [f"rsu/{config.rsu_id}/camera/*/{kind}" for kind in ("detections", "image")]
+    own_inputs = [detections_key(config.rsu_id, "*"), image_key(config.rsu_id, "*")]
     for message, rule_key, rule_id in rules.allowed_keys():
         if rule_key in expected:
             continue
-        on_v2x = _intersects(rule_key, "v2x/cam/*")
+        on_v2x = _intersects(rule_key, ALL_V2X)
         if not on_v2x and not any(_intersects(rule_key, key) for key in own_inputs):
             continue
         granted = f"rule {rule_id} allows {message} on {rule_key}"

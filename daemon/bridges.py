@@ -25,7 +25,7 @@ from pydantic import ValidationError
 
 from daemon.clock import Clock, SystemClock
 from daemon.ingest import Counters, RejectLog
-from daemon.recording import detections_key, v2x_key
+from daemon.keys import detections_key, v2x_key
 from pipeline.errors import InputError
 from schemas.common import STAMP_NS_MAX, STAMP_NS_MIN, describe_validation_error
 from schemas.messages import DetectionFrame, V2xPosition

@@ -23,8 +23,18 @@ from typing import Any, Literal
 import zenoh
 
 from daemon.clock import Clock
-from daemon.foxglove import FRAME_TRANSFORM, transform_key
-from daemon.recording import detections_key
+from daemon.foxglove import FRAME_TRANSFORM
+from daemon.keys import (
+    ALL_V2X,
+    alive_key,
+    calibration_key,
+    detections_key,
+    health_key,
+    image_key,
+    status_key,
+    transform_key,
+    trigger_key,
+)
 from pipeline.errors import RsucalError
 from schemas.config import DaemonConfig, ZenohConfig
 
@@ -53,26 +63,6 @@ class BusError(RsucalError):
 
 
 # ------------------------------------------------------------------------------------------------ keys
-
-
-def calibration_key(rsu_id: str, camera_id: str) -> str:
-    return f"rsu/{rsu_id}/camera/{camera_id}/calibration"
-
-
-def status_key(rsu_id: str, camera_id: str) -> str:
-    return f"rsu/{rsu_id}/camera/{camera_id}/calibration/status"
-
-
-def trigger_key(rsu_id: str, camera_id: str) -> str:
-    return f"rsu/{rsu_id}/camera/{camera_id}/calibration/trigger"
-
-
-def health_key(rsu_id: str) -> str:
-    return f"rsu/{rsu_id}/health"
-
-
-def alive_key(rsu_id: str) -> str:
-    return f"rsu/{rsu_id}/alive"
 
 
 def has_wildcard(key: str) -> bool:
@@ -298,12 +288,12 @@ class Bus:
             self._session = session = open_session(config, effective_endpoints(config))
             on_sample = self._sample_callback()
             # Input keys are those of the recordings (daemon.recording), with wildcards.
-            for key in (detections_key(self._rsu_id, "*"), "v2x/cam/*"):
+            for key in (detections_key(self._rsu_id, "*"), ALL_V2X):
                 self._subscribers.append(session.declare_subscriber(key, on_sample))
             if self._on_image is not None:
-                image_key = f"rsu/{self._rsu_id}/camera/*/image"
                 on_image = self._sample_callback(self._on_image)
-                self._subscribers.append(session.declare_subscriber(image_key, on_image))
+                images = image_key(self._rsu_id, "*")
+                self._subscribers.append(session.declare_subscriber(images, on_image))
             answers: dict[Kind, tuple[str, Callable[[zenoh.Query], None]]] = {
                 "calibration": (calibration_key(self._rsu_id, "*"), self._answer_calibration),
                 "status": (status_key(self._rsu_id, "*"), self._answer_status),

@@ -38,8 +38,9 @@ from daemon.demo_images import (
     image_setup,
     publish_with_images,
 )
+from daemon.keys import calibration_key, detections_key, health_key, image_key, status_key, v2x_key
 from daemon.main import Daemon, DaemonEvent
-from daemon.recording import detections_key, image_key, v2x_key, write_simulation_mcap
+from daemon.recording import write_simulation_mcap
 from pipeline.camera import camera_center
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame
@@ -239,7 +240,7 @@ def run_demo(
             client = zenoh.open(client_config([endpoint]))
             if isinstance(clock, ReplayClock) and rendered is not None:
                 answers = DetectorAnswers()
-                client.declare_subscriber(f"rsu/{sim.rsu_id}/camera/*/detections", answers.on_sample)
+                client.declare_subscriber(detections_key(sim.rsu_id, "*"), answers.on_sample)
                 publisher = threading.Thread(
                     target=publish_with_images,
                     args=(publisher_session, messages, clock, stop, rendered, answers, image_replay),
@@ -286,7 +287,7 @@ def run_demo(
 
 
 def _health(client: zenoh.Session, config: DaemonConfig) -> Health | None:
-    answers = query(client, f"rsu/{config.rsu_id}/health", timeout_s=2.0)
+    answers = query(client, health_key(config.rsu_id), timeout_s=2.0)
     return decode_json(Health, answers[0][1]) if answers else None
 
 
@@ -338,7 +339,7 @@ def _or_inf(value: float | None) -> float:
 
 def _statuses(client: zenoh.Session, config: DaemonConfig) -> dict[str, CalibrationStatus]:
     statuses = {}
-    for _, payload in query(client, f"rsu/{config.rsu_id}/camera/*/calibration/status", timeout_s=2.0):
+    for _, payload in query(client, status_key(config.rsu_id, "*"), timeout_s=2.0):
         status = decode_json(CalibrationStatus, payload)
         statuses[status.camera_id] = status
     return statuses
@@ -409,7 +410,7 @@ def _wait_for_jobs(
 
 def _read_calibrations(client: zenoh.Session, config: DaemonConfig) -> dict[str, CalibrationResult]:
     results = {}
-    for _, payload in query(client, f"rsu/{config.rsu_id}/camera/*/calibration", timeout_s=2.0):
+    for _, payload in query(client, calibration_key(config.rsu_id, "*"), timeout_s=2.0):
         result = decode_json(CalibrationResult, payload)
         results[result.camera_id] = result
     return results

@@ -27,7 +27,7 @@ from typing import Any, Literal
 
 import zenoh
 
-from daemon.recording import image_key
+from daemon.keys import image_key, parse_detections_key, parse_image_key
 from pipeline.errors import InputError
 from schemas.config import DetectorConfig
 
@@ -120,7 +120,10 @@ class DetectorAnswers:
         self.boxes = 0
 
     def on_sample(self, sample: zenoh.Sample) -> None:
-        camera_id = str(sample.key_expr).split("/")[3]
+        parsed = parse_detections_key(str(sample.key_expr))
+        if parsed is None:
+            return
+        camera_id = parsed[1]
         try:
             frame = json.loads(sample.payload.to_bytes())
             stamp_ns, boxes = int(frame["stamp_ns"]), len(frame["boxes"])
@@ -271,11 +274,12 @@ def publish_with_images(
             if stop.is_set():
                 return
             payload = message.payload
-            if message.key.endswith("/image"):
+            image = parse_image_key(message.key)
+            if image is not None:
                 key, stamp_ns, payload = next(stream)
                 if (key, stamp_ns) != (message.key, message.stamp_ns):
                     raise RuntimeError(f"renderer out of step: {key} {stamp_ns} for {message.key}")
-                camera_id = key.split("/")[3]
+                camera_id = image[1]
                 previous = last_image.get(camera_id)
                 if previous is not None and not answers.wait(
                     camera_id, previous, IMAGE_ANSWER_TIMEOUT_S, stop
@@ -289,7 +293,7 @@ def publish_with_images(
                 publisher = publishers[message.key] = session.declare_publisher(
                     message.key,
                     congestion_control=zenoh.CongestionControl.BLOCK,
-                    encoding=encoding if message.key.endswith("/image") else None,
+                    encoding=encoding if image is not None else None,
                 )
             publisher.put(payload)
         for camera_id, stamp_ns in last_image.items():

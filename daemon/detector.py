@@ -26,7 +26,7 @@ import numpy.typing as npt
 from daemon.clock import Clock
 from daemon.images import ImageBgr, ImageError, decode_compressed_image
 from daemon.ingest import Counters, RejectLog
-from daemon.recording import detections_key
+from daemon.keys import detections_key, parse_image_key
 from pipeline.errors import InputError
 from schemas.common import MAX_CLASS_ID
 from schemas.config import DaemonConfig, DetectorConfig
@@ -424,7 +424,7 @@ class ImageRouter:
     def __init__(
         self, rsu_id: str, workers: Mapping[str, DetectorWorker], counters: Counters, rejects: RejectLog
     ) -> None:
-        self._prefix = f"rsu/{rsu_id}/camera/"
+        self._rsu_id = rsu_id
         self._workers = dict(workers)
         self._counters = counters
         self._rejects = rejects
@@ -435,7 +435,8 @@ class ImageRouter:
         return self._workers
 
     def __call__(self, key: str, payload: bytes, received_ns: int) -> None:
-        camera_id = key[len(self._prefix) : -len("/image")] if key.startswith(self._prefix) else ""
+        parsed = parse_image_key(key)
+        camera_id = parsed[1] if parsed is not None and parsed[0] == self._rsu_id else ""
         worker = self._workers.get(camera_id)
         if worker is not None:
             limit = worker.max_image_bytes

@@ -94,31 +94,6 @@ CAMERA_CALIBRATION = protobuf_schema("CameraCalibration")
 # ------------------------------------------------------------------------------------------ topics, frames
 
 
-def location_topic(station_id: int) -> str:
-    """Recording topic of a station's foxglove.LocationFix (beside its raw v2x/cam/{station_id})."""
-    return f"v2x/cam/{station_id}/location"
-
-
-def annotations_topic(rsu_id: str, camera_id: str) -> str:
-    """Recording topic of a camera's foxglove.ImageAnnotations (beside its raw .../detections)."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/detections/annotations"
-
-
-def transform_key(rsu_id: str, camera_id: str) -> str:
-    """Bus key and recording topic of an accepted result as foxglove.FrameTransform (world -> camera)."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/calibration/transform"
-
-
-def origin_topic(rsu_id: str, camera_id: str) -> str:
-    """Recording topic of the result's local origin as foxglove.FrameTransform (world -> local frame)."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/calibration/origin"
-
-
-def camera_info_topic(rsu_id: str, camera_id: str) -> str:
-    """Recording topic of an accepted result's intrinsics as foxglove.CameraCalibration."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/calibration/camera_info"
-
-
 def camera_frame_id(rsu_id: str, camera_id: str) -> str:
     """The camera's optical frame (OpenCV: x right, y down, z forward) in Foxglove's transform tree."""
     return f"rsu/{rsu_id}/camera/{camera_id}"

@@ -22,7 +22,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from google.protobuf import descriptor_pb2
 from google.protobuf.message import DecodeError
 
-from daemon.recording import image_key
+from daemon.keys import image_key
 from pipeline.errors import InputError
 from schemas.common import STAMP_NS_MAX, STAMP_NS_MIN
 

@@ -21,6 +21,7 @@ from pydantic import ValidationError
 from pyproj.exceptions import ProjError
 
 from daemon.clock import Clock
+from daemon.keys import detections_key, parse_detections_key, parse_v2x_key, v2x_key
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, utm_epsg_for
 from schemas.common import describe_validation_error
@@ -273,26 +274,21 @@ class Decoder:
             UNKNOWN_KEY,
             "rejected",
             f"{_shorten(inbound.key, MAX_KEY_CHARS)!r}: neither "
-            f"rsu/{self._rsu_id}/camera/<camera_id>/detections nor v2x/cam/<station_id>",
+            f"{detections_key(self._rsu_id, '<camera_id>')} nor {v2x_key('<station_id>')}",
         )
         return None
 
     # ------------------------------------------------------------------------------------------ keys
 
     def _route(self, key: str) -> _Route:
-        parts = key.split("/")
         route = _UNKNOWN_ROUTE
-        if (
-            len(parts) == 5
-            and parts[0] == "rsu"
-            and parts[1] == self._rsu_id
-            and parts[2] == "camera"
-            and parts[3]
-            and parts[4] == "detections"
-        ):
-            route = _Route(DETECTIONS, parts[3], -1, parts[3] in self._camera_ids)
-        elif len(parts) == 3 and parts[0] == "v2x" and parts[1] == "cam" and _is_canonical_uint(parts[2]):
-            station_id = int(parts[2])
+        camera_key = parse_detections_key(key)
+        station = None if camera_key is not None else parse_v2x_key(key)
+        if camera_key is not None and camera_key[0] == self._rsu_id:
+            camera_id = camera_key[1]
+            route = _Route(DETECTIONS, camera_id, -1, camera_id in self._camera_ids)
+        elif station is not None and _is_canonical_uint(station):
+            station_id = int(station)
             if station_id <= MAX_STATION_ID:
                 route = _Route(V2X, "", station_id, station_id in self._vehicle_ids)
         if route is _UNKNOWN_ROUTE:

@@ -2,10 +2,13 @@
 
 Zenoh callbacks only enqueue (key, payload, received_ns). The ingest thread owns the decoder, the MCAP
 recorder and the traversal trackers: it decodes, logs, counts traversals and, when a camera is due, flushes
-the recording and hands a job to the job runner (separate processes). The supervisor thread owns the
-results: it stores each finished job atomically, publishes accepted ones and keeps the per-camera status.
-Queryable threads read immutable snapshots only. Shutdown: stop input, drain, finish the MCAP file,
-persist, close the Zenoh session, stop the workers.
+the recording and hands a job to the job runner (daemon.pool, separate processes). The supervisor thread
+owns the results: it applies each finished job's Decision (daemon.publication: what to store, publish and
+remember), so every camera's record (CameraRuntime) changes there.
+Queryable threads read immutable snapshots only. The camera's state is persisted after every job, so
+shutdown has nothing left to save: close the Zenoh session (no new input, no more queries), stop the
+detectors, let the ingest thread drain the inbox and finish the MCAP file, stop the supervisor, then the
+job workers (a job still running is lost; its window is used again after a restart).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
@@ -37,12 +40,16 @@ from daemon.clock import Clock, SystemClock
 from daemon.detector import DetectorWorker, ImageRouter, build_workers
 from daemon.foxglove import frame_transform
 from daemon.ingest import Counters, Decoder, DetectionsIn, Inbound, RejectLog, V2xIn
-from daemon.jobs import JobOutcome, JobRunner, JobSpec, compare_results, new_job_id
+from daemon.jobs import JobOutcome, JobSpec, new_job_id
+from daemon.keys import parse_detections_key
+from daemon.pool import JobRunner
+from daemon.publication import decide, storing_failed
 from daemon.recording import RotatingRecorder, iter_v2x, list_recordings
 from daemon.state import CameraState, StateStore, prepare_state_dir
 from daemon.traversals import (
     Coverage,
     JobWindow,
+    TrackerSnapshot,
     TraversalEvent,
     TraversalTracker,
     coverage_from_config,
@@ -54,11 +61,9 @@ from schemas.messages import V2xPosition
 from schemas.results import (
     CalibrationResult,
     CalibrationStatus,
-    ChangeInfo,
     DiskUsage,
     Health,
     JobSummary,
-    Verdict,
 )
 
 log = logging.getLogger(__name__)
@@ -78,6 +83,32 @@ PRUNE_INTERVAL_S = 5.0
 INGEST_BATCH = 256
 # A trigger query waits this long (wall) for the ingest thread to start its job, then answers "busy".
 TRIGGER_TIMEOUT_S = 2.0
+
+
+@dataclass(slots=True)
+class CameraRuntime:
+    """One camera's runtime record in the daemon.
+
+    The tracker and the detection count belong to the ingest thread. The rest belongs to the supervisor
+    (the job fields are set by the ingest thread when it starts a job) and is read by the queryable threads:
+    all under Daemon._lock.
+    """
+
+    tracker: TraversalTracker
+    state: CameraState
+    current: CalibrationResult | None = None
+    current_json: bytes | None = None  # current, as the queryable answers it
+    running_job: str | None = None  # id of the job running now
+    job_started_ns: int | None = None
+    pending_window_start_ns: int | None = None  # of the running job: its recordings must stay
+    job_counts: dict[str, int] = field(
+        default_factory=lambda: {"jobs": 0, "accepted": 0, "refused": 0, "failed": 0}
+    )
+    detections: int = 0  # detection frames received
+
+    def set_current(self, result: CalibrationResult, payload: bytes | None = None) -> None:
+        self.current = result
+        self.current_json = payload if payload is not None else result.model_dump_json().encode("utf-8")
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,18 +172,9 @@ class Daemon:
             self.recordings_dir, self.config.rsu_id, self.config.storage, self.clock
         )
         self._frame = UtmFrame(crs) if crs is not None else None
-        self.trackers: dict[str, TraversalTracker] = {}
-        self._camera_detections: dict[str, int] = {}
-
-        # Supervisor-owned; read by queryable threads under _lock.
+        # One record per camera, made by _recover(); see CameraRuntime for which thread owns what.
         self._lock = threading.Lock()
-        self._current: dict[str, CalibrationResult] = {}
-        self._current_json: dict[str, bytes] = {}
-        self._camera_state: dict[str, CameraState] = {}
-        self._running: dict[str, str] = {}  # camera_id -> job_id
-        self._job_started_ns: dict[str, int] = {}
-        self._pending_window_start_ns: dict[str, int] = {}  # jobs not finished: their files must stay
-        self._job_counts: dict[str, dict[str, int]] = {}
+        self._cameras: dict[str, CameraRuntime] = {}
         self._finished: queue.SimpleQueue[tuple[JobSpec, Future[JobOutcome]]] = queue.SimpleQueue()
 
         self._runner: JobRunner | None = None
@@ -215,7 +237,8 @@ class Daemon:
         )
 
     def stop(self) -> None:
-        """Stop input, drain, finish the MCAP file, persist, close the bus and the workers. Idempotent."""
+        """Close the bus, stop the detectors, drain the inbox, finish the MCAP file, stop the job workers
+        (the module docstring says why in this order). Idempotent."""
         if self._bus is not None:
             self._bus.close()  # no new input, no more queries
         # The detectors' frames go through the inbox: stop them before ingest drains it.
@@ -281,36 +304,34 @@ class Daemon:
             coverage = coverage_from_config(camera, self._frame) if self._frame is not None else None
             if coverage is None and current is not None:
                 coverage = coverage_from_result(current)
-            tracker = TraversalTracker(camera_id, coverage, self.config.trigger)
-            self.trackers[camera_id] = tracker
-            self._camera_detections[camera_id] = 0
+            runtime = CameraRuntime(TraversalTracker(camera_id, coverage, self.config.trigger), state)
+            if current is not None:
+                runtime.set_current(current)
             with self._lock:
-                if current is not None:
-                    self._current[camera_id] = current
-                    self._current_json[camera_id] = current.model_dump_json().encode("utf-8")
-                self._camera_state[camera_id] = state
-                self._job_counts[camera_id] = {"jobs": 0, "accepted": 0, "refused": 0, "failed": 0}
+                self._cameras[camera_id] = runtime
         replayed = self._replay_traversals(now_ns)
-        for camera_id, tracker in self.trackers.items():
-            state = self._camera_state[camera_id]
-            if state.used_until_ns is not None:
-                tracker.restore_used_until(state.used_until_ns)
+        for camera_id, runtime in self._cameras.items():
+            tracker = runtime.tracker
+            if runtime.state.used_until_ns is not None:
+                tracker.restore_used_until(runtime.state.used_until_ns)
             tracker.tick(now_ns)
             log.info(
                 "camera %s: %d traversal(s) in the open window after replaying %d V2X message(s)%s",
                 camera_id,
                 tracker.snapshot().traversals,
                 replayed,
-                ""
-                if camera_id not in self._current
-                else f"; current result {self._current[camera_id].result_id}",
+                "" if runtime.current is None else f"; current result {runtime.current.result_id}",
             )
+
+    def tracker_snapshot(self, camera_id: str) -> TrackerSnapshot:
+        """The camera's traversal counts as of the ingest thread's last change (an immutable object)."""
+        return self._cameras[camera_id].tracker.snapshot()
 
     def _replay_traversals(self, now_ns: int, trackers: list[TraversalTracker] | None = None) -> int:
         """Feed the open window's recorded calibration-vehicle positions through the trackers again."""
         if self._frame is None:
             return 0
-        targets = list(self.trackers.values()) if trackers is None else trackers
+        targets = [c.tracker for c in self._cameras.values()] if trackers is None else trackers
         since_ns = now_ns - int(self.config.trigger.max_window_s * 1e9) - WINDOW_FILE_MARGIN_NS
         files = [f.path for f in list_recordings(self.recordings_dir, self.config.rsu_id)]
         stations = {vehicle.station_id for vehicle in self.config.vehicles}
@@ -362,8 +383,11 @@ class Daemon:
         bus = self._bus
         if bus is None:
             return
+        parsed = parse_detections_key(key)
+        if parsed is None:
+            return
         try:
-            bus.publish_detections(key.split("/")[3], payload)
+            bus.publish_detections(parsed[1], payload)
         except BusError as err:
             self.counters.add("images.publish_failed")
             log.debug("publishing a detected frame: %s", err)
@@ -409,7 +433,7 @@ class Daemon:
             self.recorder.write_detections(
                 decoded.camera_id, decoded.stamp_ns, decoded.received_ns, decoded.payload, decoded.box_fields
             )
-            self._camera_detections[decoded.camera_id] += 1
+            self._cameras[decoded.camera_id].detections += 1
             return
         assert isinstance(decoded, V2xIn)
         self.recorder.write_v2x(
@@ -426,8 +450,8 @@ class Daemon:
             self._frame = self.decoder.frame
         east, north = decoded.utm
         stamp_ns = decoded.message.stamp_ns
-        for tracker in self.trackers.values():
-            events = tracker.observe(decoded.station_id, stamp_ns, east, north, decoded.received_ns)
+        for runtime in self._cameras.values():
+            events = runtime.tracker.observe(decoded.station_id, stamp_ns, east, north, decoded.received_ns)
             if events:
                 self._emit_all(events)
 
@@ -435,12 +459,13 @@ class Daemon:
         now_ns = self.clock.now_ns()
         self.recorder.tick()
         self.rejects.tick()
-        for camera_id, tracker in self.trackers.items():
-            self._emit_all(tracker.tick(now_ns))
+        for camera_id, runtime in self._cameras.items():
+            self._emit_all(runtime.tracker.tick(now_ns))
             with self._lock:
-                busy = camera_id in self._running
+                busy, calibrated = runtime.running_job is not None, runtime.current is not None
             if not busy:
-                window = tracker.due(now_ns)
+                # A calibrated camera is re-verified on new drive-pasts alone (daemon.traversals).
+                window = runtime.tracker.due(now_ns, new_only=calibrated)
                 if window is not None:
                     self._start_job(camera_id, window, new_job_id(camera_id, now_ns))
         self._prune(now_ns)
@@ -451,9 +476,12 @@ class Daemon:
             return
         self._next_prune = time.monotonic() + PRUNE_INTERVAL_S
         with self._lock:
-            pending = list(self._pending_window_start_ns.values())
+            pending = [c.pending_window_start_ns for c in self._cameras.values()]
         oldest_ns = min(
-            [*(t.snapshot().window_start_ns or now_ns for t in self.trackers.values()), *pending],
+            [
+                *(c.tracker.snapshot().window_start_ns or now_ns for c in self._cameras.values()),
+                *(start_ns for start_ns in pending if start_ns is not None),
+            ],
             default=now_ns,
         )
         pruned = self.recorder.prune(keep_after_ns=oldest_ns - WINDOW_FILE_MARGIN_NS)
@@ -475,11 +503,32 @@ class Daemon:
         started."""
         assert self._runner is not None
         self.recorder.flush()
+        now_ns = self.clock.now_ns()
+        spec = self.job_spec(camera_id, window, job_id, now_ns)
+        if spec is None:
+            log.error("camera %s: job %s has no calibration vehicle or no UTM zone yet", camera_id, job_id)
+            return False
+        runtime = self._cameras[camera_id]
+        runtime.tracker.mark_used(window)
+        with self._lock:
+            runtime.running_job = job_id
+            runtime.job_started_ns = now_ns
+            runtime.pending_window_start_ns = window.start_ns
+            runtime.job_counts["jobs"] += 1
+        future = self._runner.submit(spec)
+        future.add_done_callback(lambda done, spec=spec: self._finished.put((spec, done)))  # type: ignore[misc]
+        text = f"job {job_id} started on {len(window.traversals)} traversal(s)"
+        log.info("camera %s: %s", camera_id, text)
+        self._emit(DaemonEvent("job_started", camera_id, text, len(window.traversals)))
+        return True
+
+    def job_spec(self, camera_id: str, window: JobWindow, job_id: str, now_ns: int) -> JobSpec | None:
+        """What a job of this camera on `window` is given (the recordings on disk now); None without a
+        calibration vehicle for the window's station or a UTM zone."""
         camera = self.config.camera(camera_id)
         vehicle = self.config.vehicle(window.station_id)
         if vehicle is None or self.config.crs is None:
-            log.error("camera %s: job %s has no calibration vehicle or no UTM zone yet", camera_id, job_id)
-            return False
+            return None
         # Files are named by the receive time of their first message, windows are producer stamps. Data can
         # arrive late (a detector's backlog after a link outage), so a file is ruled out only when all its
         # data was received before the window began (its successor started before), never by the end.
@@ -489,15 +538,17 @@ class Daemon:
             for f, following in zip(recordings, [*recordings[1:], None], strict=True)
             if following is None or following.start_ns >= window.start_ns - WINDOW_FILE_MARGIN_NS
         ]
-        now_ns = self.clock.now_ns()
-        spec = JobSpec(
+        with self._lock:
+            estimated_offset_ns = self._cameras[camera_id].state.time_offset_ns
+        return JobSpec(
             job_id=job_id,
             rsu_id=self.config.rsu_id,
             camera_id=camera_id,
             intrinsics=camera.intrinsics,
             vehicle=vehicle.profile,
             station_id=window.station_id,
-            time_offset_ns=vehicle.time_offset_ns,
+            # The camera's last accepted estimate is the prior; the configured offset only until there is one.
+            time_offset_ns=vehicle.time_offset_ns if estimated_offset_ns is None else estimated_offset_ns,
             crs=self.config.crs,
             recordings=tuple(files),
             window_start_ns=window.start_ns,
@@ -511,18 +562,6 @@ class Daemon:
             labels=None if camera.labels is None else dict(camera.labels),
             report_dir=str(self.store.history_dir(camera_id)),
         )
-        self.trackers[camera_id].mark_used(window)
-        with self._lock:
-            self._running[camera_id] = job_id
-            self._job_started_ns[camera_id] = now_ns
-            self._pending_window_start_ns[camera_id] = window.start_ns
-            self._job_counts[camera_id]["jobs"] += 1
-        future = self._runner.submit(spec)
-        future.add_done_callback(lambda done, spec=spec: self._finished.put((spec, done)))  # type: ignore[misc]
-        text = f"job {job_id} started on {len(window.traversals)} traversal(s)"
-        log.info("camera %s: %s", camera_id, text)
-        self._emit(DaemonEvent("job_started", camera_id, text, len(window.traversals)))
-        return True
 
     # ------------------------------------------------------------------------------------------ supervisor
 
@@ -541,96 +580,35 @@ class Daemon:
             self._finish_job(spec, outcome)
 
     def _finish_job(self, spec: JobSpec, outcome: JobOutcome) -> None:
+        """Supervisor thread: apply the publication policy's Decision (daemon.publication) for a finished job:
+        store the result, save the camera's state, publish, update the runtime record, tell observers."""
         camera_id = spec.camera_id
+        runtime = self._cameras[camera_id]
         now_ns = self.clock.now_ns()
         with self._lock:
-            started_ns = self._job_started_ns.get(camera_id, spec.created_at_ns)
-            state = self._camera_state[camera_id]
-            current = self._current.get(camera_id)
-        duration_s = max(0.0, (now_ns - started_ns) / 1e9)
-        result: CalibrationResult | None = None
-        if outcome.result_json is not None:
-            result = CalibrationResult.model_validate_json(outcome.result_json)
-        if result is None:
-            verdict = Verdict(status="refused", reasons=[outcome.error or "the job produced no result"])
-            kind = "failed"
-        else:
-            verdict = result.verdict
-            kind = "accepted" if verdict.is_accepted else "refused"
-        publish: bytes | None = None
-        verified_at_ns = state.verified_at_ns
-        current_id = state.current_result_id
-        text: str
-        if result is not None:
-            if verdict.is_accepted and current is not None:
-                try:
-                    change = compare_results(result, current, self.config.change)
-                except ValueError as err:  # e.g. the UTM zone changed since current.json was written
-                    log.warning("camera %s: %s; the new result replaces the current one", camera_id, err)
-                    change = ChangeInfo(
-                        previous_result_id=current.result_id, shift_m=0.0, shift_deg=0.0, moved=True
-                    )
-                result = result.model_copy(update={"change": change})
-                # Only a fit that used boxes of a drive-past newer than the last job's window can confirm
-                # or overturn the current result; the older drive-pasts alone would just repeat it.
-                is_fresh = outcome.newest_track_end_ns is not None and (
-                    state.used_until_ns is None or outcome.newest_track_end_ns > state.used_until_ns
-                )
-                if not is_fresh:
-                    text = (
-                        f"not a re-verification: the fit used no box of the new drive-past "
-                        f"({change.shift_m:.2f} m, {change.shift_deg:.2f} deg from {current.result_id})"
-                    )
-                elif change.moved:
-                    text = (
-                        f"camera moved {change.shift_m:.2f} m / {change.shift_deg:.2f} deg: "
-                        "new result published"
-                    )
-                    publish = result.model_dump_json().encode("utf-8")
-                else:
-                    text = (
-                        f"re-verified: agrees with {current.result_id} "
-                        f"({change.shift_m:.2f} m, {change.shift_deg:.2f} deg)"
-                    )
-                    verified_at_ns = now_ns
-            elif verdict.is_accepted:
-                text = "calibrated: result published"
-                publish = result.model_dump_json().encode("utf-8")
-            else:
-                text = "refused: " + "; ".join(verdict.reasons)
-            try:
-                self.store.save_result(result, current=publish is not None)
-            except OSError as err:
-                # Not stored, not published: after a restart the queryable must answer what was published.
-                reason = f"result {result.result_id} could not be stored: {err}"
-                log.error("camera %s: job %s: %s", camera_id, spec.job_id, reason)
-                verdict = Verdict(status="refused", reasons=[*verdict.reasons, reason])
-                kind, publish, text = "failed", None, "failed: " + reason
-                verified_at_ns = state.verified_at_ns
-            if publish is not None:
-                verified_at_ns = now_ns
-                current_id = result.result_id
-        else:
-            text = "failed: " + "; ".join(verdict.reasons)
-        summary = JobSummary(
-            job_id=spec.job_id,
+            started_ns = runtime.job_started_ns or spec.created_at_ns
+            state = runtime.state
+            current = runtime.current
+        decision = decide(
+            outcome,
+            current,
+            state,
+            self.config.change,
+            window_end_ns=spec.window_end_ns,
             started_ns=started_ns,
-            finished_ns=now_ns,
-            duration_s=duration_s,
-            verdict=verdict,
-            report=outcome.report_path,
+            now_ns=now_ns,
         )
-        new_state = state.model_copy(
-            update={
-                "last_job": summary,
-                "verified_at_ns": verified_at_ns,
-                "used_until_ns": max(spec.window_end_ns, state.used_until_ns or 0),
-                "current_result_id": current_id,
-                "last_reasons": list(verdict.reasons),
-            }
-        )
+        for warning in decision.warnings:
+            log.warning("camera %s: %s", camera_id, warning)
+        if decision.result is not None:
+            try:
+                self.store.save_result(decision.result, current=decision.publish)
+            except OSError as err:
+                reason = f"result {decision.result.result_id} could not be stored: {err}"
+                log.error("camera %s: job %s: %s", camera_id, spec.job_id, reason)
+                decision = storing_failed(decision, state, reason)
         try:
-            self.store.save_camera_state(camera_id, new_state)
+            self.store.save_camera_state(camera_id, decision.state)
         except OSError as err:  # the state in memory still answers queries; the next save may succeed
             log.error("camera %s: saving the camera state failed: %s", camera_id, err)
         storage = self.config.storage
@@ -643,33 +621,42 @@ class Daemon:
             )
         except OSError as err:  # a full or read-only disk must not stop the supervisor; retried next job
             log.error("camera %s: pruning the result history failed: %s", camera_id, err)
+        result = decision.result
+        payload = result.model_dump_json().encode("utf-8") if decision.publish and result else None
         with self._lock:
-            self._camera_state[camera_id] = new_state
-            self._running.pop(camera_id, None)
-            self._pending_window_start_ns.pop(camera_id, None)
-            self._job_counts[camera_id][kind] += 1
-            if publish is not None and result is not None:
-                self._current[camera_id] = result
-                self._current_json[camera_id] = publish
+            runtime.state = decision.state
+            runtime.running_job = None
+            runtime.pending_window_start_ns = None
+            runtime.job_counts[decision.kind] += 1
+            if payload is not None and result is not None:
+                runtime.set_current(result, payload)
         if result is not None:
             # The recorder belongs to the ingest thread: the result channels are written there.
             recorded = result
             self._inbox.put(lambda: self.recorder.write_result(recorded, self.clock.now_ns()))
-        if publish is not None and result is not None:
+        if decision.kind == "accepted" and outcome.vehicle_boxes:
+            # Now that the fit says which boxes were the calibration vehicle's: a Foxglove overlay of them.
+            boxes = outcome.vehicle_boxes
+
+            def record_vehicle_boxes() -> None:
+                self.recorder.write_vehicle_boxes(camera_id, boxes, self.clock.now_ns())
+
+            self._inbox.put(record_vehicle_boxes)
+        if payload is not None and result is not None:
             if self._bus is not None:
-                self._bus.publish_calibration(camera_id, publish)
+                self._bus.publish_calibration(camera_id, payload)
                 self._bus.publish_transform(camera_id, frame_transform(result))
-            if self.trackers[camera_id].snapshot().learning:
+            if runtime.tracker.snapshot().learning:
                 learned = coverage_from_result(result)
                 self._inbox.put(lambda: self._learn_coverage(camera_id, learned))
-        log.info("camera %s: job %s %s (%.1f s)", camera_id, spec.job_id, text, duration_s)
-        event_kind = "published" if publish is not None else ("verified" if kind == "accepted" else kind)
-        self._emit(DaemonEvent(event_kind, camera_id, f"job {spec.job_id} {text}"))
+        duration_s = max(0.0, (now_ns - started_ns) / 1e9)
+        log.info("camera %s: job %s %s (%.1f s)", camera_id, spec.job_id, decision.text, duration_s)
+        self._emit(DaemonEvent(decision.event, camera_id, f"job {spec.job_id} {decision.text}"))
 
     def _learn_coverage(self, camera_id: str, coverage: Coverage) -> None:
         """Ingest thread: count this camera's traversals where the calibrated view sees the vehicle from now
         on; the open window is recounted at once (its traversals stay used by the job that learned it)."""
-        tracker = self.trackers[camera_id]
+        tracker = self._cameras[camera_id].tracker
         tracker.set_coverage(coverage)
         self.recorder.flush()
         replayed = self._replay_traversals(self.clock.now_ns(), [tracker])
@@ -680,19 +667,24 @@ class Daemon:
     # ------------------------------------------------------------------------------------------ queries
 
     def _answer_calibration(self, camera_id: str) -> bytes | None:
+        runtime = self._cameras.get(camera_id)
+        if runtime is None:
+            return None
         with self._lock:
-            return self._current_json.get(camera_id)
+            return runtime.current_json
 
     def status(self, camera_id: str) -> CalibrationStatus:
         """The camera's status as `.../calibration/status` answers it."""
+        runtime = self._cameras[camera_id]
         with self._lock:
-            state = self._camera_state.get(camera_id, CameraState())
-            running = self._running.get(camera_id)
-            started_ns = self._job_started_ns.get(camera_id)
-            has_current = camera_id in self._current
-            counts = dict(self._job_counts.get(camera_id, {}))
+            state = runtime.state
+            running = runtime.running_job
+            started_ns = runtime.job_started_ns
+            has_current = runtime.current is not None
+            counts = dict(runtime.job_counts)
+            detections = runtime.detections
         # Trackers are owned by the ingest thread; their snapshots are immutable and swapped whole.
-        view = self.trackers[camera_id].snapshot()
+        view = runtime.tracker.snapshot()
         last_job = state.last_job
         if running is not None and started_ns is not None:
             last_job = JobSummary(job_id=running, started_ns=started_ns)
@@ -706,18 +698,21 @@ class Daemon:
         else:
             status_state = "idle"
         counters = {
-            "detections": self._camera_detections.get(camera_id, 0),
+            "detections": detections,
             **{f"jobs.{name}" if name != "jobs" else "jobs": value for name, value in counts.items()},
         }
         return CalibrationStatus(
             rsu_id=self.config.rsu_id,
             camera_id=camera_id,
             state=status_state,
-            traversals=view.traversals,
+            # A calibrated camera's next job is a re-verification on new drive-pasts only: count those.
+            traversals=view.new_traversals if has_current else view.traversals,
             traversals_needed=self.config.trigger.min_traversals,
             last_job=last_job,
             current_result_id=state.current_result_id,
             verified_at_ns=state.verified_at_ns,
+            time_offset_ns=state.time_offset_ns,
+            time_offset_std_ns=state.time_offset_std_ns,
             counters=counters,
             updated_at_ns=self.clock.now_ns(),
         )
@@ -728,8 +723,9 @@ class Daemon:
     def trigger(self, camera_id: str, timeout_s: float = TRIGGER_TIMEOUT_S) -> tuple[str | None, str]:
         """Start a job now on the camera's open window; (job id, "") once it started, else (None, reason)."""
         self.config.camera(camera_id)
+        runtime = self._cameras[camera_id]
         with self._lock:
-            running = self._running.get(camera_id)
+            running = runtime.running_job
         if running is not None:
             return None, f"job {running} is already running"
         answer: Future[tuple[str | None, str]] = Future()
@@ -740,12 +736,12 @@ class Daemon:
             if not answer.set_running_or_notify_cancel():
                 return  # the caller gave up waiting and was told so
             with self._lock:
-                running = self._running.get(camera_id)
+                running, calibrated = runtime.running_job, runtime.current is not None
             if running is not None:
                 answer.set_result((None, f"job {running} is already running"))
                 return
             now_ns = self.clock.now_ns()
-            window = self.trackers[camera_id].force_window(now_ns)
+            window = runtime.tracker.force_window(now_ns, new_only=calibrated)
             if window is None:
                 reason = "no calibration-vehicle data in the window"
                 log.warning("camera %s: trigger: %s", camera_id, reason)
@@ -782,13 +778,16 @@ class Daemon:
         counters["recordings.messages_written"] = self.recorder.messages_written
         counters["recordings.messages_dropped"] = self.recorder.messages_dropped
         counters["recordings.files_written"] = self.recorder.files_written
+        bus = self._bus
+        if bus is not None:
+            counters["bus.callback_errors"] = bus.callback_errors  # Zenoh callbacks that raised (a bug)
         files = list_recordings(self.recordings_dir, self.config.rsu_id)
         try:
             free_bytes = shutil.disk_usage(self.state_dir).free
         except OSError:
             free_bytes = 0
         with self._lock:
-            jobs_running = len(self._running)
+            jobs_running = sum(c.running_job is not None for c in self._cameras.values())
         return Health(
             rsu_id=self.config.rsu_id,
             started_at_ns=self.started_at_ns,

@@ -10,7 +10,6 @@ and field; recoverable problems (rejected messages, a damaged chunk) are returne
 from __future__ import annotations
 
 import math
-import os
 import re
 import sys
 from collections import Counter
@@ -24,12 +23,14 @@ import numpy as np
 from pyproj.exceptions import CRSError
 from tqdm import tqdm
 
+from daemon.atomic import write_atomic
+from daemon.keys import v2x_key
 from daemon.recording import read_recording
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
 from pipeline.loaders import load_intrinsics, load_toolbox_detections, load_toolbox_poses, load_vehicle
-from schemas.common import LOCAL_CRS, CameraIntrinsics, VehicleProfile
+from schemas.common import EPSG_PATTERN, IDENTIFIER, LOCAL_CRS, CameraIntrinsics, VehicleProfile
 from schemas.messages import VehiclePose
 from schemas.results import CalibrationResult
 
@@ -42,8 +43,7 @@ DEFAULT_YAML_CRS = "EPSG:32632"
 OFFLINE_RSU_ID = "offline"
 DEFAULT_CAMERA_ID = "camera"
 
-_IDENTIFIER = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # schemas.common.Identifier
-_EPSG = re.compile(r"^EPSG:\d{4,5}$")
+_EPSG = re.compile(EPSG_PATTERN)
 _NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
 _COUNTED_NOTE = re.compile(r"^(\d+) x (.*)$")
 # Eastings inside a UTM zone lie within ~167-833 km (widest at the equator), northings within 0-10 000 km.
@@ -91,7 +91,7 @@ def load_offline_inputs(
     if mcap_path is None and (detections_path is None or poses_path is None):
         missing = "--poses" if poses_path is None else "--detections"
         raise InputError(missing, "the YAML pair needs both --detections and --poses")
-    if camera_id is not None and not _IDENTIFIER.match(camera_id):
+    if camera_id is not None and not IDENTIFIER.match(camera_id):
         raise InputError("--camera-id", f"{camera_id!r} is not a camera id ([A-Za-z0-9_.-], 1-64 chars)")
     if frame not in ("utm", "local"):
         raise InputError("--frame", f"{frame!r} is not one of utm, local")
@@ -126,7 +126,7 @@ def load_offline_inputs(
         notes.append(f"poses are UTM without a zone: assuming {crs} (set --crs for the lat/lon output)")
     if camera_id is None:
         stem = "" if isinstance(camera_path, CameraIntrinsics) else Path(camera_path).stem
-        camera_id = stem if _IDENTIFIER.match(stem) else DEFAULT_CAMERA_ID
+        camera_id = stem if IDENTIFIER.match(stem) else DEFAULT_CAMERA_ID
     detections = load_toolbox_detections(Path(detections_path), camera_id)
     poses = load_toolbox_poses(Path(poses_path))
     if shift is not None:
@@ -207,7 +207,7 @@ def _from_mcap(
         try:
             crs = utm_epsg_for(messages[0].lat, messages[0].lon)
         except InputError as err:
-            raise InputError(str(path), f"v2x/cam/{station_id}: {err.detail}") from err
+            raise InputError(str(path), f"{v2x_key(station_id)}: {err.detail}") from err
         notes.append(f"crs {crs}: the UTM zone of the first V2X position (--crs to override)")
     poses, skipped = poses_from_v2x(messages, UtmFrame(crs))
     if skipped:
@@ -285,18 +285,11 @@ def _choices(values: Sequence[str]) -> str:
 
 
 def write_result(result: CalibrationResult, path: Path) -> Path:
-    """Write the result JSON atomically (tmp + fsync + os.replace): never a half-written file."""
+    """Write the result JSON atomically and durably (daemon.atomic): never a half-written file."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "w", encoding="utf-8") as stream:
-            stream.write(result.model_dump_json(indent=2) + "\n")
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
+        write_atomic(path, (result.model_dump_json(indent=2) + "\n").encode("utf-8"))
     except OSError as err:
-        tmp.unlink(missing_ok=True)
         raise InputError(str(path), f"(file): cannot write: {err.strerror or err}") from err
     return path
 

@@ -1,11 +1,12 @@
 """MCAP recordings: the daemon's log of every valid incoming message and the offline/simulated input format.
 
 Layout (docs/design.md): one channel per key expression, message_encoding "json", schema "jsonschema" from the
-pydantic model, log_time = receive ns, publish_time = stamp_ns; chunked, zstd. This is the only module
-that imports mcap. Reading is deliberately forgiving: a truncated or partly corrupted file yields every
-message that can still be proven intact (chunk CRCs), and bad messages are counted, never fatal.
-The daemon records through RotatingRecorder ({rsu_id}-{start_received_ns:019d}.mcap files, rotated by size
-and age, pruned by retention); jobs read a stamp window across files with read_window.
+pydantic model, log_time = receive ns, publish_time = stamp_ns; chunked, zstd. MCAP files are written and
+read here (daemon.main imports mcap only to report its version). Reading is deliberately forgiving: a
+truncated or partly corrupted file yields every message that can still be proven intact (chunk CRCs), and
+bad messages are counted, never fatal. The daemon records through RotatingRecorder
+({rsu_id}-{start_received_ns:019d}.mcap files, rotated by size and age, pruned by retention); jobs read a
+stamp window across files with read_window.
 """
 
 from __future__ import annotations
@@ -46,11 +47,17 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk
 from pydantic import BaseModel, ValidationError
 
-from daemon import __version__, foxglove
+from daemon import __version__, foxglove, keys
 from daemon.clock import Clock
 from daemon.foxglove import MessageSchema
 from pipeline.errors import RecordingError
-from schemas.common import decode_json, describe_validation_error
+from schemas.common import (
+    IDENTIFIER,
+    IDENTIFIER_CHARS,
+    IDENTIFIER_MAX_LENGTH,
+    decode_json,
+    describe_validation_error,
+)
 from schemas.config import StorageConfig
 from schemas.messages import DetectionFrame, V2xPosition
 from schemas.results import CalibrationResult
@@ -75,9 +82,6 @@ ZSTD_LEVEL = 1
 SIM_DETECTION_LATENCY_NS = 30_000_000
 SIM_V2X_LATENCY_NS = 20_000_000
 
-_IDENTIFIER = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # schemas.common.Identifier: safe in a Zenoh key
-_DETECTIONS_TOPIC = re.compile(r"^rsu/([^/]+)/camera/([^/]+)/detections$")
-_V2X_TOPIC = re.compile(r"^v2x/cam/([^/]+)$")
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, record length (MCAP spec)
 _FOOTER = struct.Struct("<BQQQI")  # head, summary_start, summary_offset_start, summary_crc
 # Message record: head, channel_id u16, sequence u32, log_time u64, publish_time u64, then the payload.
@@ -107,21 +111,6 @@ Compression = Literal["zstd", "lz4", "none"]
 # A channel's schema: an rsucal model (JSON, with its JSON Schema) or a foreign one (Foxglove's protobuf).
 ChannelSchema = type[BaseModel] | MessageSchema
 _COMPRESSION_NAMES: dict[str, str] = {"zstd": "zstd", "lz4": "lz4", "none": ""}  # as written in chunks
-
-
-def detections_key(rsu_id: str, camera_id: str) -> str:
-    """Bus key (and MCAP topic) of a camera's detections."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/detections"
-
-
-def image_key(rsu_id: str, camera_id: str) -> str:
-    """Bus key (and MCAP topic) of a camera's images (foxglove.CompressedImage), for its detector."""
-    return f"rsu/{rsu_id}/camera/{camera_id}/image"
-
-
-def v2x_key(station_id: int) -> str:
-    """Bus key (and MCAP topic) of a station's V2X positions."""
-    return f"v2x/cam/{station_id}"
 
 
 # ---------------------------------------------------------------------------------------------- writing
@@ -299,13 +288,13 @@ class RecordingWriter:
 
     def write_detections(self, rsu_id: str, frame: DetectionFrame, received_ns: int) -> None:
         """Log a DetectionFrame on rsu/{rsu_id}/camera/{frame.camera_id}/detections."""
-        if not _IDENTIFIER.match(rsu_id):
+        if not IDENTIFIER.match(rsu_id):
             raise ValueError(f"rsu_id {rsu_id!r} is not a valid key segment ([A-Za-z0-9_.-], 1-64 chars)")
-        self.write(detections_key(rsu_id, frame.camera_id), frame, received_ns, frame.stamp_ns)
+        self.write(keys.detections_key(rsu_id, frame.camera_id), frame, received_ns, frame.stamp_ns)
 
     def write_v2x(self, msg: V2xPosition, received_ns: int) -> None:
         """Log a V2xPosition on v2x/cam/{msg.station_id}."""
-        self.write(v2x_key(msg.station_id), msg, received_ns, msg.stamp_ns)
+        self.write(keys.v2x_key(msg.station_id), msg, received_ns, msg.stamp_ns)
 
     def write_result(self, result: CalibrationResult, received_ns: int) -> None:
         """Log a CalibrationResult (JSON) on .../calibration and, with a pose, its Foxglove views.
@@ -504,24 +493,22 @@ def write_result_views(write_raw: WriteRaw, result: CalibrationResult, received_
     (UTM -> local frame) on .../calibration/origin and foxglove.CameraCalibration on .../camera_info."""
     rsu_id, camera_id = result.rsu_id, result.camera_id
     payload = result.model_dump_json().encode("utf-8")
-    write_raw(
-        f"rsu/{rsu_id}/camera/{camera_id}/calibration", CalibrationResult, payload, received_ns, received_ns
-    )
+    write_raw(keys.calibration_key(rsu_id, camera_id), CalibrationResult, payload, received_ns, received_ns)
     if not result.verdict.is_accepted or result.R is None or result.t is None:
         return  # a refused result's pose (if any) is not the camera's: nothing to place in a 3D scene
     for key, schema, data in (
         (
-            foxglove.transform_key(rsu_id, camera_id),
+            keys.transform_key(rsu_id, camera_id),
             foxglove.FRAME_TRANSFORM,
             foxglove.frame_transform(result),
         ),
         (
-            foxglove.origin_topic(rsu_id, camera_id),
+            keys.origin_topic(rsu_id, camera_id),
             foxglove.FRAME_TRANSFORM,
             foxglove.origin_transform(result),
         ),
         (
-            foxglove.camera_info_topic(rsu_id, camera_id),
+            keys.camera_info_topic(rsu_id, camera_id),
             foxglove.CAMERA_CALIBRATION,
             foxglove.camera_calibration(result),
         ),
@@ -563,15 +550,15 @@ def write_simulation_mcap(
 
         image_schema = foxglove.protobuf_schema("CompressedImage")
         for camera_id in result.detections:
-            key = image_key(result.rsu_id, camera_id)
+            key = keys.image_key(result.rsu_id, camera_id)
             for stamp_ns, image in render_images(result, camera_id, image_every):
                 payload = encode_compressed_image(image, stamp_ns, camera_id, "jpeg", jpeg_quality=85)
                 entries.append(
                     (stamp_ns + SIM_DETECTION_LATENCY_NS, -1, stamp_ns, key, image_schema, payload)
                 )
     for camera_id, frames in result.detections.items():
-        key = detections_key(result.rsu_id, camera_id)
-        view_key = foxglove.annotations_topic(result.rsu_id, camera_id)
+        key = keys.detections_key(result.rsu_id, camera_id)
+        view_key = keys.annotations_topic(result.rsu_id, camera_id)
         for frame in frames:
             log_time = frame.stamp_ns + SIM_DETECTION_LATENCY_NS
             entries.append(
@@ -585,11 +572,18 @@ def write_simulation_mcap(
     for msg in result.v2x:
         log_time = msg.stamp_ns + SIM_V2X_LATENCY_NS
         entries.append(
-            (log_time, 2, msg.stamp_ns, v2x_key(msg.station_id), V2xPosition, msg.model_dump_json().encode())
+            (
+                log_time,
+                2,
+                msg.stamp_ns,
+                keys.v2x_key(msg.station_id),
+                V2xPosition,
+                msg.model_dump_json().encode(),
+            )
         )
         fix = foxglove.location_fix(msg, is_vehicle=msg.station_id == result.station_id)
         entries.append(
-            (log_time, 3, msg.stamp_ns, foxglove.location_topic(msg.station_id), foxglove.LOCATION_FIX, fix)
+            (log_time, 3, msg.stamp_ns, keys.location_topic(msg.station_id), foxglove.LOCATION_FIX, fix)
         )
     # Sort on the numeric fields only; ties keep camera, annotation, V2X, location order.
     entries.sort(key=lambda entry: entry[:3])
@@ -927,20 +921,22 @@ class _Decoder:
         if topic in self._routes:
             return self._routes[topic]
         route = None
-        det = _DETECTIONS_TOPIC.match(topic)
-        v2x = None if det else _V2X_TOPIC.match(topic)
+        det = keys.parse_detections_key(topic)
+        station = None if det else keys.parse_v2x_key(topic)
         if det is not None:
-            rsu, cam = det.groups()
+            rsu, cam = det
             if (
                 self.want_detections
                 and (self.rsu_id is None or rsu == self.rsu_id)
                 and (self.camera_id is None or cam == self.camera_id)
             ):
                 route = _Route(True, rsu, cam)
-        elif v2x is not None:
-            station = v2x.group(1)
-            if self.want_v2x and (self.station_keys is None or station in self.station_keys):
-                route = _Route(False, "", station)
+        elif (
+            station is not None
+            and self.want_v2x
+            and (self.station_keys is None or station in self.station_keys)
+        ):
+            route = _Route(False, "", station)
         # Anything else is not an rsucal input channel: listed in `channels`, otherwise ignored.
         self._routes[topic] = route
         return route
@@ -1052,7 +1048,7 @@ def read_images(
 ) -> dict[int, bytes]:
     """The recorded image (compressed bytes) nearest each of `stamps` within `tolerance_ns`, by stamp.
 
-    Reads foxglove.CompressedImage messages on image_key(rsu_id, camera_id); stamps without an image
+    Reads foxglove.CompressedImage messages on keys.image_key(rsu_id, camera_id); stamps without an image
     are left out (most recordings hold none). Damaged files and undecodable messages are skipped.
     """
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -1061,7 +1057,7 @@ def read_images(
     wanted = sorted(stamps)
     if not wanted:
         return {}
-    topic = image_key(rsu_id, camera_id)
+    topic = keys.image_key(rsu_id, camera_id)
     found: dict[int, tuple[int, bytes]] = {}  # wanted stamp -> (|dt|, image)
     low, high = wanted[0] - tolerance_ns, wanted[-1] + tolerance_ns
     for path in files:
@@ -1215,7 +1211,7 @@ def iter_v2x(
 
 # ---------------------------------------------------------------------------------------------- rotation
 
-_RECORDING_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}-(\d{19,20})\.mcap$")
+_RECORDING_NAME = re.compile(rf"^[{IDENTIFIER_CHARS}]{{1,{IDENTIFIER_MAX_LENGTH}}}-(\d{{19,20}})\.mcap$")
 RETRY_AFTER_ERROR_S = 5.0  # after a failed write, messages are dropped (counted) this long before a new file
 
 
@@ -1291,7 +1287,7 @@ class RotatingRecorder:
     """
 
     def __init__(self, directory: Path, rsu_id: str, storage: StorageConfig, clock: Clock) -> None:
-        if not _IDENTIFIER.match(rsu_id):
+        if not IDENTIFIER.match(rsu_id):
             raise ValueError(f"rsu_id {rsu_id!r} is not a valid key segment ([A-Za-z0-9_.-], 1-64 chars)")
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -1359,12 +1355,12 @@ class RotatingRecorder:
         """Log a validated V2xPosition payload on v2x/cam/{station_id} and, given the decoded `message` and
         with views on, its foxglove.LocationFix on v2x/cam/{station_id}/location (calibration vehicles in
         their own colour)."""
-        if self._write(f"v2x/cam/{station_id}", V2xPosition, stamp_ns, received_ns, payload) and (
+        if self._write(keys.v2x_key(station_id), V2xPosition, stamp_ns, received_ns, payload) and (
             message is not None and self._views
         ):
             view = foxglove.location_fix(message, is_vehicle)
             self._write_view(
-                foxglove.location_topic(station_id), foxglove.LOCATION_FIX, view, received_ns, stamp_ns
+                keys.location_topic(station_id), foxglove.LOCATION_FIX, view, received_ns, stamp_ns
             )
 
     def write_result(self, result: CalibrationResult, received_ns: int) -> None:
@@ -1374,8 +1370,29 @@ class RotatingRecorder:
             write_result_views(self._write_view, result, received_ns)
         else:
             payload = result.model_dump_json().encode("utf-8")
-            key = f"rsu/{result.rsu_id}/camera/{result.camera_id}/calibration"
+            key = keys.calibration_key(result.rsu_id, result.camera_id)
             self._write_view(key, CalibrationResult, payload, received_ns, received_ns)
+
+    def write_vehicle_boxes(
+        self,
+        camera_id: str,
+        boxes: Sequence[tuple[int, float, float, float, float]],
+        received_ns: int,
+    ) -> int:
+        """Log the calibration vehicle's boxes as a finished job identified them (stamp_ns, x1, y1, x2, y2),
+        one foxglove.ImageAnnotations per frame on .../calibration/annotations, in the vehicle's colour, so
+        that Foxglove shows them over the camera's detections. With views off, nothing; returns the frames
+        written."""
+        if not self._views or not boxes:
+            return 0
+        topic = keys.calibration_annotations_topic(self.rsu_id, camera_id)
+        by_stamp: dict[int, list[tuple[float, float, float, float]]] = {}
+        for stamp_ns, x1, y1, x2, y2 in boxes:
+            by_stamp.setdefault(stamp_ns, []).append((x1, y1, x2, y2))
+        for stamp_ns in sorted(by_stamp):
+            view = foxglove.image_annotations(stamp_ns, (), by_stamp[stamp_ns])
+            self._write_view(topic, foxglove.IMAGE_ANNOTATIONS, view, received_ns, stamp_ns)
+        return len(by_stamp)
 
     def tick(self) -> None:
         """Rotate a file older than rotate_s, else flush when flush_interval_s has passed since the last."""
@@ -1454,17 +1471,17 @@ class RotatingRecorder:
         self.close()
 
     def _detection_key(self, camera_id: str) -> tuple[str, str]:
-        if not _IDENTIFIER.match(camera_id):
+        if not IDENTIFIER.match(camera_id):
             raise ValueError(
                 f"camera_id {camera_id!r} is not a valid key segment ([A-Za-z0-9_.-], 1-64 chars)"
             )
         if len(self._detection_keys) >= 4096:  # bounded: camera ids come from outside (validated, though)
             self._detection_keys.clear()
-        keys = self._detection_keys[camera_id] = (
-            detections_key(self.rsu_id, camera_id),
-            foxglove.annotations_topic(self.rsu_id, camera_id),
+        pair = self._detection_keys[camera_id] = (
+            keys.detections_key(self.rsu_id, camera_id),
+            keys.annotations_topic(self.rsu_id, camera_id),
         )
-        return keys
+        return pair
 
     def _write_view(
         self, key: str, schema: ChannelSchema, payload: bytes, received_ns: int, stamp_ns: int

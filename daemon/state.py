@@ -9,17 +9,23 @@ damaged current.json is reported and replaced by the best history entry, never f
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-import re
 import threading
 from pathlib import Path
 
 from pydantic import Field, ValidationError
 
+from daemon.atomic import fsync_dir, remove_stale_tmp, write_atomic
 from pipeline.errors import InputError
-from schemas.common import StampNs, StrictModel, decode_json, describe_validation_error
+from schemas.common import (
+    IDENTIFIER,
+    UNSAFE_IN_IDENTIFIER,
+    StampNs,
+    StrictModel,
+    decode_json,
+    describe_validation_error,
+)
 from schemas.results import CalibrationResult, JobSummary
 
 log = logging.getLogger(__name__)
@@ -27,8 +33,6 @@ log = logging.getLogger(__name__)
 CURRENT_FILE = "current.json"
 CAMERA_STATE_FILE = "camera_state.json"
 HISTORY_DIR = "history"
-_IDENTIFIER = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")  # schemas.common.Identifier
-_UNSAFE_IN_NAME = re.compile(r"[^A-Za-z0-9_.\-]")
 _STAMP_DIGITS = 19  # history names start with created_at_ns:019d, so name order is time order
 
 
@@ -42,6 +46,12 @@ class CameraState(StrictModel):
     )
     current_result_id: str | None = None
     last_reasons: list[str] = Field(default_factory=list)
+    time_offset_ns: int | None = Field(
+        default=None,
+        description="the last accepted result's estimated time offset (CalibrationResult.time_offset_ns), "
+        "the prior of the camera's next job",
+    )
+    time_offset_std_ns: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
 
 
 class StateStore:
@@ -59,7 +69,7 @@ class StateStore:
 
     def camera_dir(self, camera_id: str) -> Path:
         """cameras/{camera_id}; the id must be an Identifier, so it can never escape the state directory."""
-        if not _IDENTIFIER.match(camera_id) or camera_id in (".", ".."):
+        if not IDENTIFIER.match(camera_id) or camera_id in (".", ".."):
             raise ValueError(f"camera_id {camera_id!r} is not an identifier ([A-Za-z0-9_.-], 1-64 chars)")
         return self.state_dir / "cameras" / camera_id
 
@@ -97,9 +107,9 @@ class StateStore:
         data = (result.model_dump_json(indent=2) + "\n").encode("utf-8")
         path = self.history_path(result)
         with self._lock:
-            _write_atomic(path, data, self.state_dir)
+            write_atomic(path, data, self.state_dir)
             if current:
-                _write_atomic(self.current_path(result.camera_id), data, self.state_dir)
+                write_atomic(self.current_path(result.camera_id), data, self.state_dir)
         return path
 
     def load_current(self, camera_id: str) -> CalibrationResult | None:
@@ -179,7 +189,7 @@ class StateStore:
             if created_before_ns is not None:
                 beyond.update(e for e in entries if _created_ns_of(e) < created_before_ns)
             for entry in sorted(beyond):
-                if protected is not None and _result_id_of(entry) == _UNSAFE_IN_NAME.sub("_", protected):
+                if protected is not None and _result_id_of(entry) == UNSAFE_IN_IDENTIFIER.sub("_", protected):
                     continue
                 entry.unlink(missing_ok=True)
                 removed.append(entry)
@@ -187,9 +197,9 @@ class StateStore:
                 if report.exists():
                     report.unlink(missing_ok=True)
                     removed.append(report)
-            removed.extend(_remove_stale_tmp(directory))
+            removed.extend(remove_stale_tmp(directory))
             if removed:
-                _fsync_dir(directory)
+                fsync_dir(directory)
         return removed
 
     # ------------------------------------------------------------------------------------------ camera state
@@ -198,7 +208,7 @@ class StateStore:
         """camera_state.json, atomically."""
         data = (state.model_dump_json(indent=2) + "\n").encode("utf-8")
         with self._lock:
-            _write_atomic(self.camera_dir(camera_id) / CAMERA_STATE_FILE, data, self.state_dir)
+            write_atomic(self.camera_dir(camera_id) / CAMERA_STATE_FILE, data, self.state_dir)
 
     def load_camera_state(self, camera_id: str) -> CameraState | None:
         """The saved CameraState; None when never saved, or unreadable (logged, naming the file)."""
@@ -225,7 +235,7 @@ def _created_ns_of(entry: Path) -> int:
 
 def history_name(result: CalibrationResult, suffix: str) -> str:
     """{created_at_ns:019d}-{result_id}{suffix}: a history entry (.json) or its job's report (.html)."""
-    safe_id = _UNSAFE_IN_NAME.sub("_", result.result_id)
+    safe_id = UNSAFE_IN_IDENTIFIER.sub("_", result.result_id)
     return f"{result.created_at_ns:0{_STAMP_DIGITS}d}-{safe_id}{suffix}"
 
 
@@ -243,57 +253,6 @@ def _decode_result(raw: bytes, camera_id: str) -> CalibrationResult | str:
 def _result_id_of(entry: Path) -> str:
     """The (file-name safe) result id of a history entry {created_at_ns:019d}-{result_id}.json."""
     return entry.name[_STAMP_DIGITS + 1 : -len(".json")]
-
-
-def _write_atomic(path: Path, data: bytes, root: Path) -> None:
-    """Replace `path` by `data` so that a crash at any point leaves either the old or the new file whole."""
-    _make_dirs(path.parent, root)
-    # One fixed temporary name per target: a crash leaves at most one stale file, overwritten next time.
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view) :]
-            os.fsync(fd)  # the data is on disk before the name points at it
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):  # cleanup must not hide the error that brought us here
-            tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)  # ... and the new name itself survives a power loss
-
-
-def _make_dirs(directory: Path, root: Path) -> None:
-    """mkdir -p, fsyncing each new directory's parent so the new entries are durable too."""
-    missing: list[Path] = []
-    current = directory
-    while not current.exists():
-        missing.append(current)
-        if current == root or current.parent == current:
-            break
-        current = current.parent
-    for new in reversed(missing):
-        new.mkdir(parents=new == root, exist_ok=True)
-        _fsync_dir(new.parent)
-
-
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _remove_stale_tmp(directory: Path) -> list[Path]:
-    stale = [p for p in directory.glob(".*.tmp") if p.is_file()]
-    for path in stale:
-        path.unlink(missing_ok=True)
-    return stale
 
 
 def prepare_state_dir(state_dir: Path) -> Path:

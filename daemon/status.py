@@ -26,17 +26,14 @@ from pydantic import BaseModel, ValidationError
 from daemon.bus import (
     NO_CALIBRATION_YET,
     BusError,
-    alive_key,
-    calibration_key,
     client_config,
     connect_endpoints,
-    health_key,
     open_session,
     split_replies,
     start_query,
-    status_key,
     zenoh_message,
 )
+from daemon.keys import alive_key, calibration_key, health_key, parse_alive_key, status_key
 from pipeline.errors import InputError
 from schemas.common import decode_json, describe_validation_error
 from schemas.results import CalibrationResult, CalibrationStatus, Health
@@ -170,7 +167,7 @@ def fetch_status(
     health = _decode_all(Health, health_replies.ok, problems)
     for key, answer in health:
         _check_key(key, health_key(answer.rsu_id), problems)
-    alive = sorted({key.split("/")[1] for key, _ in alive_replies.ok if key.count("/") == 2})
+    alive = sorted({rsu for key, _ in alive_replies.ok if (rsu := parse_alive_key(key)) is not None})
     return StatusReport(
         fetched_at_ns=fetched_at_ns,
         endpoints=endpoints,
@@ -280,8 +277,17 @@ def _camera_row(
         verified,
         position,
         accuracy,
+        format_time_offset(status.time_offset_ns, status.time_offset_std_ns),
     ]
     return row, notes
+
+
+def format_time_offset(offset_ns: int | None, std_ns: float | None) -> str:
+    """The camera's estimated time offset (vehicle clock minus camera stamp): '+81.0 ms ±2.5', or '-'."""
+    if offset_ns is None:
+        return "-"
+    text = f"{offset_ns / 1e6:+.1f} ms"
+    return text if std_ns is None else f"{text} ±{std_ns / 1e6:.1f}"
 
 
 def _health_row(
@@ -327,7 +333,7 @@ def format_status(report: StatusReport) -> str:
         if report.statuses:
             rows = [_camera_row(s, report.result_for(s.rsu_id, s.camera_id), now_ns) for s in report.statuses]
             headers = ["RSU", "CAMERA", "STATE", "TRAVERSALS", "LAST JOB", "RESULT", "VERIFIED"]
-            lines += _table([*headers, "POSITION (LAT, LON, ALT)", "ACCURACY"], rows)
+            lines += _table([*headers, "POSITION (LAT, LON, ALT)", "ACCURACY", "TIME OFFSET"], rows)
             lines.append("")
         health_by_rsu = {h.rsu_id: h for h in report.health}
         rows = [_health_row(r, health_by_rsu.get(r), r in report.alive, report) for r in rsu_ids]

@@ -15,7 +15,13 @@ stamps), the visit is resumed and the event is "entered" again with the visit's 
 Due (coverage known): the station with the most traversals that ended within `max_window_s` (our clock)
 has at least `min_traversals` of them, at least one not used by an earlier job, no vehicle is inside and
 `quiet_period_s` passed since the last visit ended. The window is all of that station's traversals in
-`max_window_s`, so after the first job every new drive-past re-verifies the camera on the recent ones.
+`max_window_s`: until the camera is calibrated, a refused job's drive-pasts count again in the next one.
+
+Re-verification (`new_only`, the daemon's choice once the camera has a current result): only traversals that
+ended after the last job's window (`used_until_ns`) count, at least `min_traversals` of them, and the window
+starts after the last one used. Drive-pasts judged against the current result are never pooled with those
+it was fitted on, nor with those of an earlier re-verification: a camera moved in between is judged on the
+drive-pasts after the move (or, moved within a window, on the next window at the latest).
 
 Learning mode (no coverage yet: no polygon/circle configured and no accepted result). Without coverage
 nobody can tell a drive-past from a drive elsewhere, so the tracker collects time instead:
@@ -583,15 +589,16 @@ class TraversalTracker:
 
     # ------------------------------------------------------------------------------------------ jobs
 
-    def due(self, now_ns: int) -> JobWindow | None:
-        """The window of the job that should start now, or None (see the module docstring)."""
+    def due(self, now_ns: int, *, new_only: bool = False) -> JobWindow | None:
+        """The window of the job that should start now, or None (see the module docstring); `new_only`: a
+        re-verification, on traversals newer than the last job's window only."""
         if self._coverage is None:
             return self._learning_window(now_ns, require_due=True)
         if self._inside or self._last_left_received_ns is None:
             return None
         if now_ns - self._last_left_received_ns < self._quiet_ns:
             return None
-        by_station = self._live_by_station(now_ns)
+        by_station = self._live_by_station(now_ns, new_only=new_only)
         used = self._used_until_ns
         eligible = [
             group
@@ -601,17 +608,21 @@ class TraversalTracker:
         ]
         if not eligible:
             return None
-        return self._traversal_window(max(eligible, key=lambda g: (len(g), g[-1].leave_ns)))
+        return self._traversal_window(max(eligible, key=lambda g: (len(g), g[-1].leave_ns)), new_only)
 
-    def force_window(self, now_ns: int) -> JobWindow | None:
+    def force_window(self, now_ns: int, *, new_only: bool = False) -> JobWindow | None:
         """The window of a job started by hand now: all traversals of the station with the most in
-        max_window_s (however few); without coverage or traversals all data of the station heard longest
-        (as in learning mode); None without any calibration-vehicle data."""
+        max_window_s (however few); with `new_only` those newer than the last job's window when there are
+        any (else the others: such a fit re-verifies nothing, see daemon.publication); without coverage or
+        traversals all data of the station heard longest (as in learning mode); None without any
+        calibration-vehicle data."""
         if self._coverage is not None:
-            by_station = self._live_by_station(now_ns)
+            by_station = self._live_by_station(now_ns, new_only=new_only) if new_only else {}
+            if not by_station:
+                by_station, new_only = self._live_by_station(now_ns), False
             if by_station:
                 return self._traversal_window(
-                    max(by_station.values(), key=lambda g: (len(g), g[-1].leave_ns))
+                    max(by_station.values(), key=lambda g: (len(g), g[-1].leave_ns)), new_only
                 )
         return self._learning_window(now_ns, require_due=False)
 
@@ -651,17 +662,24 @@ class TraversalTracker:
     def _count(self) -> int:
         return max(self._per_station.values(), default=0)
 
-    def _live_by_station(self, now_ns: int) -> dict[int, list[Traversal]]:
+    def _live_by_station(self, now_ns: int, *, new_only: bool = False) -> dict[int, list[Traversal]]:
+        """Traversals within max_window_s by station; with `new_only` those ending after used_until_ns."""
         cutoff_ns = now_ns - self._max_window_ns
+        used = self._used_until_ns if new_only else None
         groups: dict[int, list[Traversal]] = {}
         for traversal in self._traversals:
-            if traversal.left_received_ns >= cutoff_ns:
+            if traversal.left_received_ns >= cutoff_ns and (used is None or traversal.leave_ns > used):
                 groups.setdefault(traversal.station_id, []).append(traversal)
         return groups
 
-    def _traversal_window(self, group: Sequence[Traversal]) -> JobWindow:
+    def _traversal_window(self, group: Sequence[Traversal], new_only: bool = False) -> JobWindow:
+        """The traversals with WINDOW_MARGIN_S around them; with `new_only` starting after used_until_ns, so
+        the margin never reaches back into the last job's window."""
+        start_ns = min(t.enter_ns for t in group) - self._margin_ns
+        if new_only and self._used_until_ns is not None:
+            start_ns = max(start_ns, self._used_until_ns + 1)
         return JobWindow(
-            start_ns=min(t.enter_ns for t in group) - self._margin_ns,
+            start_ns=start_ns,
             end_ns=max(t.leave_ns for t in group) + self._margin_ns,
             station_id=group[0].station_id,
             traversals=tuple(group),

@@ -22,9 +22,20 @@ StampNs = Annotated[int, Field(ge=STAMP_NS_MIN, le=STAMP_NS_MAX, description="ns
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 # Boxes may reach past the image border, but never by more than any image is wide.
 PixelCoord = Annotated[float, Field(ge=-1e5, le=1e5, allow_inf_nan=False, description="px")]
+# The one identifier pattern (rsu, camera ids): safe in a Zenoh key and a file name. IDENTIFIER checks a
+# string outside a model; UNSAFE_IN_IDENTIFIER finds the characters to replace when making one.
+IDENTIFIER_CHARS = r"A-Za-z0-9_.\-"
+IDENTIFIER_MAX_LENGTH = 64
+IDENTIFIER = re.compile(rf"^[{IDENTIFIER_CHARS}]{{1,{IDENTIFIER_MAX_LENGTH}}}$")
+UNSAFE_IN_IDENTIFIER = re.compile(rf"[^{IDENTIFIER_CHARS}]")
 Identifier = Annotated[
     str,
-    Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$", description="safe in a Zenoh key"),
+    Field(
+        min_length=1,
+        max_length=IDENTIFIER_MAX_LENGTH,
+        pattern=rf"^[{IDENTIFIER_CHARS}]+$",
+        description="safe in a Zenoh key",
+    ),
 ]
 Vec3 = tuple[Finite, Finite, Finite]
 Matrix3 = tuple[Vec3, Vec3, Vec3]
@@ -139,7 +150,8 @@ class VehicleProfile(StrictModel):
 # A world frame is a UTM zone named by its EPSG code, or LOCAL_CRS: the poses' own local metric frame
 # (`rsucal calibrate --frame local`), which has no geographic position.
 LOCAL_CRS = "local"
-CRS_PATTERN = r"^(EPSG:\d{4,5}|local)$"
+EPSG_PATTERN = r"^EPSG:\d{4,5}$"  # a UTM zone's EPSG code: the one pattern (config, files, results, CLI)
+CRS_PATTERN = rf"^(EPSG:\d{{4,5}}|{LOCAL_CRS})$"
 
 
 class LocalOrigin(StrictModel):

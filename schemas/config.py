@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from schemas.common import (
+    EPSG_PATTERN,
     CameraIntrinsics,
     ClassId,
     ClassLabel,
@@ -278,10 +279,18 @@ class GatesConfig(StrictModel):
 
 
 class ChangeConfig(StrictModel):
-    """A new result farther than this from the current one means the camera moved."""
+    """When a re-verification means the camera moved: its shift (position or rotation) from the current result
+    exceeds both the minimum here and `sigmas` standard deviations of the difference of the two results."""
 
-    shift_m: float = Field(default=0.3, gt=0.0, le=100.0, allow_inf_nan=False)
-    shift_deg: float = Field(default=0.5, gt=0.0, le=180.0, allow_inf_nan=False)
+    shift_m: float = Field(default=0.3, gt=0.0, le=100.0, allow_inf_nan=False, description="minimum, m")
+    shift_deg: float = Field(default=0.5, gt=0.0, le=180.0, allow_inf_nan=False, description="minimum, deg")
+    sigmas: float = Field(
+        default=3.0,
+        ge=0.0,
+        le=100.0,
+        allow_inf_nan=False,
+        description="k: the shift must also exceed k std of the difference (both results' covariances)",
+    )
 
 
 class JobsConfig(StrictModel):
@@ -299,7 +308,7 @@ class DaemonConfig(StrictModel):
     rsu_id: Identifier
     crs: str | None = Field(
         default=None,
-        pattern=r"^EPSG:\d{4,5}$",
+        pattern=EPSG_PATTERN,
         description="UTM zone of results; default from the first camera position or V2X message",
     )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)

@@ -6,7 +6,16 @@ from typing import Literal
 
 from pydantic import Field
 
-from schemas.common import CameraIntrinsics, Finite, Identifier, Matrix3, StampNs, StrictModel, Vec3
+from schemas.common import (
+    EPSG_PATTERN,
+    CameraIntrinsics,
+    Finite,
+    Identifier,
+    Matrix3,
+    StampNs,
+    StrictModel,
+    Vec3,
+)
 
 
 class GroundTruthFrame(StrictModel):
@@ -60,7 +69,7 @@ class GroundTruth(StrictModel):
     """
 
     camera_id: Identifier
-    crs: str = Field(pattern=r"^EPSG:\d{4,5}$")
+    crs: str = Field(pattern=EPSG_PATTERN)
     origin: Vec3
     R: Matrix3
     t_utm: Vec3

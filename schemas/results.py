@@ -87,12 +87,31 @@ class Verdict(StrictModel):
 
 
 class ChangeInfo(StrictModel):
-    """How this result differs from the previously published one."""
+    """How this result differs from the previously published one, and the numbers the move decision used:
+    moved when shift_m > max(min_shift_m, sigmas * shift_std_m) or shift_deg > max(min_shift_deg, sigmas *
+    shift_std_deg) (docs/design.md, "Re-verification")."""
 
     previous_result_id: str
-    shift_m: float = Field(ge=0.0, allow_inf_nan=False)
-    shift_deg: float = Field(ge=0.0, allow_inf_nan=False)
+    shift_m: float = Field(ge=0.0, allow_inf_nan=False, description="distance of the camera centres, m")
+    shift_deg: float = Field(ge=0.0, allow_inf_nan=False, description="angle of the relative rotation, deg")
     moved: bool
+    shift_std_m: float | None = Field(
+        default=None,
+        ge=0.0,
+        allow_inf_nan=False,
+        description="std of the centre difference along the shift (both results' covariances), m",
+    )
+    shift_std_deg: float | None = Field(
+        default=None,
+        ge=0.0,
+        allow_inf_nan=False,
+        description="std of the rotation difference about its axis (both results' covariances), deg",
+    )
+    sigmas: float | None = Field(default=None, ge=0.0, allow_inf_nan=False, description="k (change.sigmas)")
+    min_shift_m: float | None = Field(default=None, ge=0.0, allow_inf_nan=False, description="change.shift_m")
+    min_shift_deg: float | None = Field(
+        default=None, ge=0.0, allow_inf_nan=False, description="change.shift_deg"
+    )
 
 
 class Provenance(StrictModel):

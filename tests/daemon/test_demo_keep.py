@@ -42,7 +42,14 @@ def test_demo_keeps_recordings_that_foxglove_can_open(tmp_path: Path) -> None:
     [recording] = sorted((keep / "recordings").glob("*.mcap"))
     counts = check_recording(recording)
     assert all(counts[name] > 0 for name in FOXGLOVE), counts
-    assert counts["foxglove.ImageAnnotations"] == counts["rsucal.DetectionFrame"]
+    # One overlay per detection frame, plus the calibration vehicle's boxes after each accepted job.
+    with open(recording, "rb") as stream:
+        vehicle_overlays = sum(
+            channel.topic.endswith("/calibration/annotations")
+            for _, channel, _ in make_reader(stream).iter_messages()
+        )
+    assert vehicle_overlays > 0
+    assert counts["foxglove.ImageAnnotations"] == counts["rsucal.DetectionFrame"] + vehicle_overlays
     assert counts["foxglove.LocationFix"] == counts["rsucal.V2xPosition"]
     assert counts["foxglove.CameraCalibration"] == 2  # one accepted result per camera of sil-west
     assert counts["rsucal.CalibrationResult"] >= 2

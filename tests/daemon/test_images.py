@@ -18,8 +18,8 @@ from daemon.images import (
     add_image_channel,
     decode_compressed_image,
     encode_compressed_image,
-    image_key,
 )
+from daemon.keys import image_key
 
 T0 = 1_700_000_000_123_456_789
 

@@ -30,26 +30,23 @@ import cv2
 import numpy as np
 import pytest
 from helpers import wait_until
-from scipy.spatial.transform import Rotation
 
 from daemon import jobs
 from daemon.jobs import (
     TIMEOUT_RETRY_S,
     JobOutcome,
-    JobRunner,
     JobSpec,
     JobTimeout,
     _time_limit,
-    compare_results,
     new_job_id,
     pipeline_params,
     run_job,
 )
+from daemon.pool import JobRunner
 from daemon.recording import write_simulation_mcap
 from pipeline.calibrate import SOFTWARE_VERSION, PipelineParams
-from schemas.common import CameraIntrinsics
-from schemas.config import ChangeConfig, GatesConfig
-from schemas.results import CalibrationResult, CameraPosition, ReferenceFrame, Verdict
+from schemas.config import GatesConfig
+from schemas.results import CalibrationResult
 from sim.simulate import SimulationResult, simulate
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -208,6 +205,19 @@ def test_job_in_a_spawned_worker_calibrates_sil_west(scene: Scene, warm: Warm) -
     assert outcome.poses == sum(1 for m in sim.v2x if m.station_id == sim.station_id)
     assert outcome.duration_s > 0.0
     assert any(note.startswith("validation: ") for note in outcome.stage_notes)
+    # The boxes the fit took for the calibration vehicle's (the daemon records them as an overlay): the
+    # detector's own boxes of the camera's frames, and the truth's calibration-vehicle box in nearly all.
+    frames = {frame.stamp_ns: frame for frame in sim.detections[spec.camera_id]}
+    truth = {frame.stamp_ns: frame for frame in sim.ground_truth[spec.camera_id].frames}
+    assert len(outcome.vehicle_boxes) > 100
+    assert [b[0] for b in outcome.vehicle_boxes] == sorted(b[0] for b in outcome.vehicle_boxes)
+    hits = 0
+    for stamp_ns, *corners in outcome.vehicle_boxes:
+        detected = [(b.x1, b.y1, b.x2, b.y2) for b in frames[stamp_ns].boxes]
+        assert tuple(corners) in detected
+        index = truth[stamp_ns].calib_box
+        hits += index is not None and detected[index] == tuple(corners)
+    assert hits >= 0.95 * len(outcome.vehicle_boxes), (hits, len(outcome.vehicle_boxes))
 
 
 def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None:
@@ -219,7 +229,7 @@ def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None
     result = _result_of(outcome)
     assert result.verdict.status == "refused"
     assert result.verdict.reasons == ["no calibration-vehicle poses in the data window"]
-    assert (outcome.detections, outcome.poses) == (0, 0)
+    assert (outcome.detections, outcome.poses) == (0, 0) and outcome.vehicle_boxes == ()
     assert result.provenance.window_start_ns == before_any_data.window_start_ns
 
     # Detections, but the station named is not in the recording: no vehicle data either.
@@ -509,7 +519,7 @@ def test_a_worker_that_died_is_replaced(scene: Scene) -> None:
 _DAEMON = """
 import pickle, sys
 from pathlib import Path
-from daemon.jobs import JobRunner
+from daemon.pool import JobRunner
 runner = JobRunner(1)
 runner.submit(pickle.loads(Path(sys.argv[1]).read_bytes()))
 print("submitted", flush=True)
@@ -586,83 +596,3 @@ def test_pipeline_params_carry_the_configured_gates() -> None:
 def test_job_ids_name_the_camera_and_sort_by_time() -> None:
     assert new_job_id("west-arm", 1_717_000_000_000_000_000) == "west-arm-1717000000000000000"
     assert new_job_id("c", 5) < new_job_id("c", 10)
-
-
-# ---------------------------------------------------------------------------------------------- compare
-
-
-def _posed_result(
-    result_id: str, R_cam_from_local: np.ndarray, centre_utm: np.ndarray, origin: np.ndarray
-) -> CalibrationResult:
-    """An accepted result with camera centre `centre_utm` (absolute) in a local frame of `origin`."""
-    t = -R_cam_from_local @ (centre_utm - origin)
-    return CalibrationResult(
-        rsu_id="rsu-1",
-        camera_id="cam",
-        result_id=result_id,
-        created_at_ns=CREATED_AT_NS,
-        frame=ReferenceFrame(crs="EPSG:32632", origin=tuple(float(v) for v in origin)),  # type: ignore[arg-type]
-        R=tuple(tuple(float(v) for v in row) for row in R_cam_from_local),  # type: ignore[arg-type]
-        t=tuple(float(v) for v in t),  # type: ignore[arg-type]
-        camera_position=CameraPosition(
-            utm=tuple(float(v) for v in centre_utm),  # type: ignore[arg-type]
-            lat=48.4,
-            lon=9.97,
-            alt=float(centre_utm[2]),
-        ),
-        intrinsics=CameraIntrinsics(width=1920, height=1080, fx=1000.0, fy=1000.0, cx=960.0, cy=540.0),
-        verdict=Verdict(status="accepted"),
-    )
-
-
-@pytest.fixture
-def current() -> CalibrationResult:
-    # A camera 9 m up looking north and 20 deg down: camera->local columns x east, y down-ish, z forward.
-    look = Rotation.from_euler("x", -110.0, degrees=True).as_matrix()
-    return _posed_result(
-        "old", look.T, np.array([572000.0, 5361000.0, 536.0]), np.array([572000.0, 5361000.0, 527.0])
-    )
-
-
-def test_compare_measures_shift_and_rotation_in_absolute_terms(current: CalibrationResult) -> None:
-    assert current.R is not None and current.camera_position is not None
-    R_old = np.array(current.R)
-    # Turned 0.8 deg about a tilted axis in the camera frame and moved 0.3 m east, 0.4 m north, 0.12 m up;
-    # the new result's local origin differs, so t alone would mislead.
-    turn = Rotation.from_rotvec(math.radians(0.8) * np.array([1.0, 2.0, 2.0]) / 3.0).as_matrix()
-    centre = np.array(current.camera_position.utm) + np.array([0.3, 0.4, 0.12])
-    new = _posed_result("new", turn @ R_old, centre, np.array([571990.0, 5361020.0, 530.0]))
-
-    change = compare_results(new, current, ChangeConfig())
-    assert change.previous_result_id == "old"
-    assert change.shift_m == pytest.approx(math.sqrt(0.3**2 + 0.4**2 + 0.12**2), abs=1e-9)
-    assert change.shift_deg == pytest.approx(0.8, abs=1e-9)
-    assert change.moved  # 0.52 m > 0.3 m and 0.8 deg > 0.5 deg
-
-    assert not compare_results(new, current, ChangeConfig(shift_m=0.6, shift_deg=1.0)).moved
-    assert compare_results(new, current, ChangeConfig(shift_m=0.6, shift_deg=0.7)).moved  # rotation alone
-    assert compare_results(new, current, ChangeConfig(shift_m=0.5, shift_deg=1.0)).moved  # shift alone
-
-
-def test_compare_same_pose_and_tiny_rotations(current: CalibrationResult) -> None:
-    same = compare_results(current, current, ChangeConfig())
-    assert (same.shift_m, same.moved) == (0.0, False) and same.shift_deg == pytest.approx(0.0, abs=1e-6)
-    assert current.R is not None and current.camera_position is not None
-    tiny = Rotation.from_rotvec([0.0, 0.0, math.radians(0.001)]).as_matrix() @ np.array(current.R)
-    nudged = _posed_result(
-        "nudged", tiny, np.array(current.camera_position.utm), np.array(current.frame.origin)
-    )
-    assert compare_results(nudged, current, ChangeConfig()).shift_deg == pytest.approx(0.001, rel=1e-6)
-
-
-def test_compare_needs_two_poses_in_one_zone(current: CalibrationResult) -> None:
-    refused = current.model_copy(
-        update={"R": None, "t": None, "camera_position": None, "verdict": Verdict(status="refused")}
-    )
-    with pytest.raises(ValueError, match="no pose"):
-        compare_results(refused, current, ChangeConfig())
-    other_zone = current.model_copy(
-        update={"frame": ReferenceFrame(crs="EPSG:32633", origin=(0.0, 0.0, 0.0))}
-    )
-    with pytest.raises(ValueError, match="different UTM zones"):
-        compare_results(other_zone, current, ChangeConfig())

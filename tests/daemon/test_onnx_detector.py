@@ -30,8 +30,9 @@ from daemon.detector import (
 )
 from daemon.images import encode_compressed_image
 from daemon.ingest import Counters
+from daemon.keys import image_key
 from daemon.main import Daemon
-from daemon.recording import image_key, list_recordings, read_window
+from daemon.recording import list_recordings, read_window
 from schemas.common import CameraIntrinsics, VehicleProfile, decode_json
 from schemas.config import CalibrationVehicle, CameraConfig, DaemonConfig, DetectorConfig, ZenohConfig
 from schemas.results import Health

@@ -17,43 +17,50 @@ import time
 from collections.abc import Iterator
 from concurrent.futures import Future
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
+from foxglove_check import check_recording
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from helpers import free_port, wait_until
 from mcap.reader import make_reader
 
 from daemon.bus import (
     NO_CALIBRATION_YET,
     QueryReplies,
-    calibration_key,
     client_config,
     query,
     query_replies,
     split_replies,
     start_query,
-    status_key,
-    trigger_key,
 )
 from daemon.clock import ScaledClock
 from daemon.demo import BusMessage, demo_config, publish_messages, simulation_messages
-from daemon.foxglove import transform_key
+from daemon.foxglove import VEHICLE_BOX_RGBA
 from daemon.jobs import JobOutcome, JobSpec, new_job_id
+from daemon.keys import (
+    calibration_annotations_topic,
+    calibration_key,
+    status_key,
+    transform_key,
+    trigger_key,
+    v2x_key,
+)
 from daemon.main import Daemon, DaemonEvent
-from daemon.recording import detections_key, v2x_key
+from daemon.traversals import JobWindow
 from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
 from pipeline.metrics import result_from_ground_truth
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult, CalibrationStatus, Verdict
-from sim.simulate import SimulationResult, simulate
+from sim.simulate import SimulationResult, resolve_config, simulate
 
 RATE = 60.0  # time acceleration of the end-to-end tests: the 251 s sil-west drive in ~4 s
 NS_PER_S = 1_000_000_000
@@ -303,17 +310,23 @@ class Camera:
         *,
         newest_track_end_ns: int | None = None,
     ) -> JobSpec:
-        """Hand a finished job to the supervisor's decision function, as the supervisor thread does.
+        """Hand a finished job to the supervisor thread as a worker's future would, and wait until it is
+        applied (the camera's status names the job).
 
-        _finish_job is private, but it is the one place that decides publication, change detection and
-        re-verification; feeding it outcomes built from the simulator's truth tests those rules without
-        running the pipeline (the end-to-end tests below run it).
+        The rules themselves are daemon.publication.decide's (test_decide.py); these tests check that the
+        daemon applies them: stores, publishes, answers. The outcomes are built from the simulator's truth,
+        so no pipeline runs (the end-to-end tests below run it).
         """
         spec = _spec(self.site.config, self.camera_id, self.now_ns())
         outcome = _outcome(spec, result, error)
         if newest_track_end_ns is not None:
             outcome = dataclasses.replace(outcome, newest_track_end_ns=newest_track_end_ns)
-        self.site.daemon._finish_job(spec, outcome)
+        done: Future[JobOutcome] = Future()
+        done.set_result(outcome)
+        self.site.daemon._finished.put((spec, done))  # the queue the job runner's callbacks fill
+        wait_until(
+            lambda: (job := self.status().last_job) is not None and job.job_id == spec.job_id, timeout_s=10
+        )
         return spec
 
     def status(self) -> CalibrationStatus:
@@ -392,6 +405,36 @@ def test_first_accepted_result_is_published_stored_and_answered(camera: Camera) 
     assert other is not None and other.state == "idle" and other.current_result_id is None
     replies = _calibration(camera.site.client, camera.site.config, other_id)
     assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION_YET in replies.errors[0]
+
+
+def test_the_estimated_time_offset_is_shown_and_becomes_the_next_jobs_prior(camera: Camera) -> None:
+    config = camera.site.config
+    now_ns = camera.now_ns()
+    window = JobWindow(now_ns - 60 * NS_PER_S, now_ns, config.vehicles[0].station_id, ())
+    configured_ns = config.vehicles[0].time_offset_ns
+
+    def prior_ns() -> int:
+        spec = camera.site.daemon.job_spec(camera.camera_id, window, "probe", camera.now_ns())
+        assert spec is not None
+        return spec.time_offset_ns
+
+    # Before any estimate the configured offset is the prior.
+    assert prior_ns() == configured_ns and camera.status().time_offset_ns is None
+    refused = camera.truth("refused").model_copy(
+        update={"verdict": Verdict(status="refused", reasons=REFUSAL_REASONS), "R": None, "t": None}
+    )
+    camera.finish(refused.model_copy(update={"time_offset_ns": configured_ns + 300_000_000}))
+    assert prior_ns() == configured_ns  # a refused fit's estimate is not trusted
+
+    estimated_ns = configured_ns + 87_000_000
+    first = camera.truth("first").model_copy(
+        update={"time_offset_ns": estimated_ns, "time_offset_std_ns": 1.5e6}
+    )
+    camera.finish(first)
+
+    status = camera.status()
+    assert (status.time_offset_ns, status.time_offset_std_ns) == (estimated_ns, 1.5e6)
+    assert prior_ns() == estimated_ns
 
 
 def test_agreeing_result_refreshes_verification_and_publishes_nothing(camera: Camera) -> None:
@@ -672,22 +715,31 @@ def test_manual_trigger_over_the_bus(
 # ------------------------------------------------------------------------------------------ re-verification
 
 
-def test_next_drive_past_reverifies_the_camera(
-    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path
-) -> None:
-    state_dir = tmp_path / "state"
+@pytest.fixture(scope="module")
+def moved_sim() -> SimulationResult:
+    # Ideal world: the realistic one refuses most cameras until the pipeline models it; nothing below
+    # depends on which world it is, only on the pipeline accepting the drive-pasts.
+    return simulate("moved-camera", 0, ideal=True)
+
+
+@dataclass
+class Drive:
+    """A daemon (min_traversals 4) fed a whole simulated drive over the bus until two jobs finished."""
+
+    config: DaemonConfig
+    camera_id: str
+    finished: list[DaemonEvent]  # the events that ended a job, in order
+    published: list[CalibrationResult]  # put on .../calibration, in order
+    status: CalibrationStatus
+    answered: list[str]  # result ids the .../calibration queryable answered at the end
+
+
+def _drive(sim: SimulationResult, state_dir: Path) -> Drive:
     base = demo_config(sim, state_dir, free_port())
-    # west-arm: each of its three drive-pasts yields a track the pipeline merges (west-junction's third does
-    # not), so the re-verification can be seen to use the new one.
-    camera = base.cameras[1]
-    # One camera, two drive-pasts per job: the first job after the 2nd, the 3rd drive-past re-verifies.
-    config = base.model_copy(
-        update={"cameras": [camera], "trigger": base.trigger.model_copy(update={"min_traversals": 2})}
-    )
-    camera_id = camera.camera_id
-    played = [
-        m for m in messages if m.key in (detections_key(sim.rsu_id, camera_id), v2x_key(sim.station_id))
-    ]
+    config = base.model_copy(update={"trigger": base.trigger.model_copy(update={"min_traversals": 4})})
+    camera_id = config.cameras[0].camera_id
+    assert len(_traversal_ends(sim, camera_id)) == 8
+    messages = simulation_messages(sim)
     clock = DriveClock(messages[0].stamp_ns - NS_PER_S, RATE)
     events: list[DaemonEvent] = []
     daemon = Daemon(config, clock=clock, on_event=events.append)
@@ -697,36 +749,109 @@ def test_next_drive_past_reverifies_the_camera(
         daemon.start()
         client = zenoh.open(client_config(config.zenoh.listen))
         subscriber = _subscribe_calibrations(client, config, received)
-        _play(client, played, clock)
-        finished = {"published", "verified", "refused", "failed"}  # event kinds that end a job
-        wait_until(lambda: sum(e.kind in finished for e in events) >= 2, timeout_s=60)
-        assert [e.kind for e in events if e.kind in finished] == ["published", "verified"]
-        status = _status(client, config, camera_id)
-
-        assert status is not None and status.state == "calibrated"
-        assert status.counters["jobs"] == 2 and status.counters["jobs.accepted"] == 2
-        [(_, payload)] = received  # only the first result was put on the bus
+        _play(client, messages, clock)
+        kinds = {"published", "verified", "refused", "failed"}  # event kinds that end a job
+        wait_until(lambda: sum(e.kind in kinds for e in events) >= 2, timeout_s=120)
+        finished = [e for e in events if e.kind in kinds]
+        published = sum(e.kind == "published" for e in finished)
+        wait_until(lambda: len(received) == published, timeout_s=10)
         subscriber.undeclare()  # type: ignore[no-untyped-call]
-        first = decode_json(CalibrationResult, payload)
-        assert status.current_result_id == first.result_id
-        history = _history(state_dir, camera_id)
-        assert [r.result_id for r in history[:1]] == [first.result_id] and len(history) == 2
-        check = history[1]
-        assert check.verdict.is_accepted and check.change is not None and not check.change.moved
-        assert first.quality is not None and first.quality.traversals == 2
-        assert check.quality is not None and check.quality.traversals == 3  # the new drive-past counted
-        assert check.change.previous_result_id == first.result_id
-        # The re-verification job started after the first had finished, so a verified_at_ns past its start
-        # was set by the re-verification.
-        assert status.verified_at_ns is not None and status.verified_at_ns >= check.created_at_ns
-        assert check.created_at_ns > first.created_at_ns
-        answered = _calibration(client, config, camera_id).ok
-        assert [decode_json(CalibrationResult, p).result_id for _, p in answered] == [first.result_id]
-        assert _current_file(state_dir, camera_id) == first
+        status = _status(client, config, camera_id)
+        assert status is not None
+        answered = [
+            decode_json(CalibrationResult, p).result_id for _, p in _calibration(client, config, camera_id).ok
+        ]
     finally:
         if client is not None:
             client.close()  # type: ignore[no-untyped-call]
         daemon.stop()
+    results = [decode_json(CalibrationResult, payload) for _, payload in received]
+    return Drive(config, camera_id, finished, results, status, answered)
+
+
+def test_a_static_camera_is_reverified_on_the_new_drive_pasts_alone(tmp_path: Path) -> None:
+    """The moved-camera drive without the move: the second job, on drive-pasts 5-8 alone, agrees with the
+    first: nothing is put on the bus, verified_at is refreshed and the stored result stays."""
+    sim = simulate(replace(resolve_config("moved-camera"), camera_move=None), 0, ideal=True)
+    state_dir = tmp_path / "state"
+
+    drive = _drive(sim, state_dir)
+
+    assert [e.kind for e in drive.finished] == ["published", "verified"], [e.text for e in drive.finished]
+    [first] = drive.published
+    assert drive.answered == [first.result_id] and _current_file(state_dir, drive.camera_id) == first
+    [stored, check] = _history(state_dir, drive.camera_id)
+    assert stored == first and check.verdict.is_accepted
+    assert check.change is not None and not check.change.moved
+    assert check.change.previous_result_id == first.result_id
+    assert first.quality is not None and first.quality.traversals == 4
+    assert check.quality is not None and check.quality.traversals == 4  # the new drive-pasts alone
+    assert first.provenance.window_end_ns is not None and check.provenance.window_start_ns is not None
+    assert first.provenance.window_end_ns < check.provenance.window_start_ns
+    status = drive.status
+    assert status.state == "calibrated" and status.current_result_id == first.result_id
+    assert status.verified_at_ns is not None and status.verified_at_ns >= check.created_at_ns
+    assert status.counters["jobs"] == 2 and status.counters["jobs.accepted"] == 2
+
+
+def test_a_moved_camera_is_flagged_and_replaced_by_a_fit_on_the_new_drive_pasts_alone(
+    moved_sim: SimulationResult, tmp_path: Path
+) -> None:
+    """Issue 10 part 7 over the bus: calibrated from the first four drive-pasts, knocked (0.4 m, 0.6 deg)
+    after the fourth, the next four are judged on their own: the move is flagged (change.moved) and their
+    result replaces the old one."""
+    sim = moved_sim
+    state_dir = tmp_path / "state"
+    truth = sim.ground_truth[sim.cameras[0].camera_id]
+    [move] = truth.moves
+    ends = _traversal_ends(sim, sim.cameras[0].camera_id)
+    assert ends[3] < move.from_exposure_ns < ends[4]
+
+    drive = _drive(sim, state_dir)
+
+    config, camera_id = drive.config, drive.camera_id
+    assert [e.kind for e in drive.finished] == ["published", "published"], [e.text for e in drive.finished]
+    first, second = drive.published
+    assert drive.status.state == "calibrated" and drive.status.current_result_id == second.result_id
+    assert drive.answered == [second.result_id]
+    assert _current_file(state_dir, camera_id) == second
+    # Each fit saw its own four drive-pasts: the windows do not overlap and straddle the move.
+    assert first.quality is not None and first.quality.traversals == 4
+    assert second.quality is not None and second.quality.traversals == 4
+    assert first.provenance.window_end_ns is not None and second.provenance.window_start_ns is not None
+    assert first.provenance.window_end_ns < second.provenance.window_start_ns
+    assert first.provenance.window_end_ns < move.from_exposure_ns
+    # The move was flagged against the first result, with the numbers the decision used.
+    change = second.change
+    assert change is not None and change.moved and change.previous_result_id == first.result_id
+    assert change.shift_std_m is not None and change.sigmas == config.change.sigmas
+    assert change.shift_m > config.change.shift_m or change.shift_deg > config.change.shift_deg
+    # Each result holds the pose of its time: the first the camera before the move, the second after.
+    assert first.camera_position is not None and second.camera_position is not None
+    before, after = np.asarray(truth.camera_position_utm), np.asarray(move.camera_position_utm)
+    half_move_m = 0.5 * np.linalg.norm(after - before)
+    assert np.linalg.norm(np.asarray(first.camera_position.utm) - before) < half_move_m
+    assert np.linalg.norm(np.asarray(second.camera_position.utm) - after) < half_move_m
+    # After each accepted job the recording shows the boxes it took for the calibration vehicle's, in the
+    # vehicle's colour on .../calibration/annotations; every message of the recordings decodes.
+    topic = calibration_annotations_topic(config.rsu_id, camera_id)
+    overlay: list[ImageAnnotations] = []
+    for path in sorted((state_dir / "recordings").glob("*.mcap")):
+        assert check_recording(path)["foxglove.ImageAnnotations"] > 0
+        with open(path, "rb") as stream:
+            overlay += [
+                ImageAnnotations.FromString(message.data)
+                for _, _, message in make_reader(stream).iter_messages(topics=[topic])
+            ]
+    frames = {frame.stamp_ns: frame for frame in sim.detections[camera_id]}
+    assert len(overlay) > 100
+    for message in overlay:
+        stamp = message.points[0].timestamp
+        detected = {(b.x1, b.y1, b.x2, b.y2) for b in frames[stamp.seconds * NS_PER_S + stamp.nanos].boxes}
+        for points in message.points:
+            assert (points.outline_color.r, points.outline_color.g) == VEHICLE_BOX_RGBA[:2]
+            corners = (points.points[0].x, points.points[0].y, points.points[2].x, points.points[2].y)
+            assert corners in detected
 
 
 def test_results_reach_foxglove_on_the_bus_and_in_the_recording(

@@ -15,15 +15,14 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from daemon import foxglove, recording
+from daemon.keys import detections_key, v2x_key
 from daemon.recording import (
     MCAP_MAGIC,
     SIM_DETECTION_LATENCY_NS,
     SIM_V2X_LATENCY_NS,
     Recording,
     RecordingWriter,
-    detections_key,
     read_recording,
-    v2x_key,
     write_simulation_mcap,
 )
 from pipeline.errors import RecordingError

@@ -14,18 +14,17 @@ import pytest
 from mcap.reader import make_reader
 
 from daemon import recording
+from daemon.keys import detections_key, v2x_key
 from daemon.recording import (
     RETRY_AFTER_ERROR_S,
     RecordingFile,
     RecordingWriter,
     RotatingRecorder,
-    detections_key,
     iter_v2x,
     list_recordings,
     read_recording,
     read_window,
     recording_name,
-    v2x_key,
 )
 from pipeline.errors import RecordingError
 from schemas.common import Box
@@ -609,7 +608,8 @@ def test_read_images_finds_the_recorded_image_nearest_each_stamp(tmp_path: Path)
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
     from daemon import foxglove
-    from daemon.recording import image_key, read_images
+    from daemon.keys import image_key
+    from daemon.recording import read_images
 
     path = tmp_path / "images.mcap"
     with RecordingWriter(path, chunk_size=4096) as writer:

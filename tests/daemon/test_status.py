@@ -64,6 +64,8 @@ def _status(camera_id: str, now_ns: int) -> CalibrationStatus:
             ),
             current_result_id="res-c1-7",
             verified_at_ns=now_ns - 12 * S,
+            time_offset_ns=81_040_000,
+            time_offset_std_ns=2_500_000.0,
             updated_at_ns=now_ns,
         )
     return CalibrationStatus(
@@ -201,7 +203,7 @@ def test_format_status_prints_an_operator_table() -> None:
     header, c1, c1_report, c2, reasons = lines[2:7]
     assert re.split(r"\s{2,}", header) == [
         "RSU", "CAMERA", "STATE", "TRAVERSALS", "LAST JOB", "RESULT", "VERIFIED", "POSITION (LAT, LON, ALT)",
-        "ACCURACY",
+        "ACCURACY", "TIME OFFSET",
     ]  # fmt: skip
     # Fixed-width columns: every row's cell starts where its header does.
     for column in ("STATE", "TRAVERSALS", "LAST JOB", "RESULT", "VERIFIED", "POSITION"):
@@ -209,6 +211,8 @@ def test_format_status_prints_an_operator_table() -> None:
         assert c1[start - 2 : start] == "  " and c1[start] != " ", column
     assert "calibrated  3/3 " in c1 and "12 s ago, took 41 s, accepted" in c1 and "res-c1-7" in c1
     assert "48.137154, 11.576124, 527.2 m" in c1 and "±0.12 m, ±0.08°" in c1
+    # The camera's estimated time offset (latency included); none estimated yet for c2.
+    assert c1.endswith("+81.0 ms ±2.5") and c2.endswith("  -")
     assert "collecting  1/3 " in c2 and "1 h 56 min ago, took 3 min 20 s, refused" in c2
     assert reasons.strip() == "c2-job-2 refused: delta_p mean 0.81 m > 0.5 m; one traversal only"
     assert c1_report.strip() == "c1-job-7 report: /var/lib/rsucal/cameras/c1/history/0001-res-c1-7.html"

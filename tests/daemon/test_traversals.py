@@ -391,7 +391,8 @@ def test_a_new_traversal_after_a_job_makes_it_due_again(scenes: dict[str, Scene]
         tracker.tick(now_ns + later_s * S)
         assert tracker.due(now_ns + later_s * S) is None
 
-    # The vehicle comes back along the same road (shifted in time): one more traversal re-verifies.
+    # The vehicle comes back along the same road (shifted in time): one more traversal makes a job on all four
+    # due (an uncalibrated camera's; a calibrated one's re-verification needs new ones alone, see below).
     offset_ns = now_ns + 600 * S - scene.samples[0][0]
     again = [(s + offset_ns, e, n) for s, e, n in scene.samples if s < scene.samples[0][0] + 60 * S]
     events = replay(tracker, again, until_ns=again[-1][0] + 60 * S)
@@ -427,6 +428,49 @@ def test_traversals_older_than_max_window_are_forgotten() -> None:
     assert tracker.due(left[1] + 600 * S + 1) is None
     tracker.tick(left[2] + 600 * S + 1)
     assert tracker.snapshot().traversals == 0 and tracker.snapshot().window_start_ns is None
+
+
+def test_reverification_counts_only_drive_pasts_after_the_last_jobs_window() -> None:
+    """A calibrated camera (new_only): the next job needs min_traversals NEW drive-pasts and its window holds
+    only those, starting after the last window, so fits before and after a possible move are never pooled."""
+    tracker = circle_tracker(min_traversals=2, quiet_period_s=10.0)
+    for start_s in (0, 100):
+        feed(tracker, drive_past(T0 + start_s * S))
+    first = tracker.due(T0 + 200 * S)
+    assert first is not None and len(first.traversals) == 2
+    tracker.mark_used(first)
+    # One new drive-past: enough to re-fit on all three (not calibrated yet), not to re-verify.
+    feed(tracker, drive_past(T0 + 200 * S))
+    window = tracker.due(T0 + 300 * S)
+    assert window is not None and len(window.traversals) == 3
+    assert tracker.due(T0 + 300 * S, new_only=True) is None
+    assert tracker.snapshot().new_traversals == 1
+    # A second new one: the re-verification's window holds the two new drive-pasts only.
+    feed(tracker, drive_past(T0 + 300 * S))
+    window = tracker.due(T0 + 400 * S, new_only=True)
+    assert window is not None and [t.enter_ns for t in window.traversals] == [T0 + 205 * S, T0 + 305 * S]
+    assert window.start_ns == T0 + 205 * S - MARGIN_NS and window.start_ns > first.end_ns
+    # A hand-triggered re-verification takes the new drive-pasts too; with none new, the old ones.
+    forced = tracker.force_window(T0 + 400 * S, new_only=True)
+    assert forced is not None and forced.traversals == window.traversals
+    tracker.mark_used(window)
+    forced = tracker.force_window(T0 + 400 * S, new_only=True)
+    assert forced is not None and len(forced.traversals) == 4
+
+
+def test_a_reverification_window_never_reaches_into_the_last_one() -> None:
+    """A drive-past starting within the margin after the last window: the window starts after it."""
+    tracker = circle_tracker(min_traversals=2, quiet_period_s=0.0)
+    feed(tracker, drive_past(T0))
+    feed(tracker, drive_past(T0 + 30 * S))
+    first = tracker.due(T0 + 60 * S)
+    assert first is not None
+    tracker.mark_used(first)  # ends at T0 + 45 s + margin (10 s)
+    feed(tracker, drive_past(T0 + 50 * S))  # inside from T0 + 55 s: the margin would reach T0 + 45 s
+    feed(tracker, drive_past(T0 + 80 * S))
+    window = tracker.due(T0 + 120 * S, new_only=True)
+    assert window is not None and len(window.traversals) == 2
+    assert window.start_ns == first.end_ns + 1
 
 
 def test_short_visits_are_discarded_but_restart_the_quiet_period() -> None:

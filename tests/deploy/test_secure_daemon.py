@@ -31,14 +31,7 @@ import zenoh
 from helpers import free_port, wait_until
 
 from daemon import cli
-from daemon.bus import (
-    NO_CALIBRATION_YET,
-    alive_key,
-    calibration_key,
-    health_key,
-    query_replies,
-    trigger_key,
-)
+from daemon.bus import NO_CALIBRATION_YET, query_replies
 from daemon.demo import demo_config
 from daemon.ingest import (
     DETECTIONS_ACCEPTED,
@@ -48,8 +41,9 @@ from daemon.ingest import (
     V2X_OTHER_STATION,
     V2X_RECEIVED,
 )
+from daemon.keys import alive_key, calibration_key, detections_key, health_key, trigger_key, v2x_key
 from daemon.main import Daemon
-from daemon.recording import detections_key, list_recordings, read_recording, v2x_key
+from daemon.recording import list_recordings, read_recording
 from daemon.state import StateStore
 from daemon.status import fetch_status, status_main
 from pipeline.metrics import result_from_ground_truth

@@ -22,14 +22,8 @@ from mcap.reader import make_reader
 from mcap.records import Chunk, Message
 from mcap.stream_reader import breakup_chunk
 
-from daemon.recording import (
-    SIM_DETECTION_LATENCY_NS,
-    SIM_V2X_LATENCY_NS,
-    RecordingWriter,
-    detections_key,
-    recording_name,
-    v2x_key,
-)
+from daemon.keys import detections_key, v2x_key
+from daemon.recording import SIM_DETECTION_LATENCY_NS, SIM_V2X_LATENCY_NS, RecordingWriter, recording_name
 from sim.files import write_simulation_files
 from sim.simulate import SimulationResult, simulate
 

@@ -1,0 +1,833 @@
+"""The final fit: camera pose, time offset, vehicle shape and detector bias from the boxes (beyond the paper).
+
+The whole-box refinement (`refinement.refine_whole_box`) models a detector box as the tight box of the
+vehicle's L x W x H cuboid, on the clock the caller assumed. Real detectors do not draw that box: a car's
+silhouette is smaller than its cuboid (rounded corners, a cabin narrower and shorter than the body, ground
+clearance under the bumpers), detectors have their own annotation convention (boxes a few per cent tight or
+loose, edges a few pixels in or out) and stamp a frame some unknown 40-200 ms after its exposure. Fitting the
+cuboid on such boxes moved simulated cameras 0.6-0.8 m even with the right tracks and the latency known, and
+an unknown 180 ms latency alone moved them 3 m (tools: bench.accuracy, the realistic world).
+
+So the pose is fitted jointly with the unknowns it would otherwise absorb, each with a weak prior:
+- time shift `delta` (s): the box stamped t shows the vehicle at trajectory time t - delta; observable
+  because the vehicle moves at varying speed and direction across the drive-pasts;
+- the body as a convex template of 12 points in the vehicle box frame (docs/method.md): the footprint
+  rectangle lifted to a clearance height `z_low`, the same rectangle at a shoulder height `z_mid`, and a
+  roof rectangle at the profile's height H spanning [x_front, x_back] along the body and inset `y_in` from
+  each side. The profile's L, W, H stay the vehicle's data-sheet extents; the template only says which part
+  of that box the silhouette fills. It starts as the cuboid (z_low 0, z_mid H, roof = whole top);
+- the detector's convention: a scale `s` of every box about its centre and a constant offset of each edge
+  (px), the same for all boxes of the camera.
+Box size changes tenfold along a drive-past, so metric shape and pixel bias separate; what the data cannot
+separate from the pose shows up in the pose's marginal covariance, which is the block of the full inverse,
+nuisance parameters included (their priors keep it finite).
+
+Uncertainty: detector errors are correlated over consecutive frames (a box edge stays a few pixels off for
+a second) and GNSS errors drift, so independent-residual least squares overstates the information many times.
+The covariance is the cluster-robust sandwich A^-1 B A^-1 with A the (robust-weighted) normal matrix plus the
+priors' information and B the sum over clusters (one per track and `cluster_s` of time) of the outer
+products of their score sums (plus the priors' information), never below the classical sigma^2 A^-1.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import least_squares, nnls
+
+from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, Stamps, Vec3
+from pipeline.association import Trajectory
+from pipeline.camera import CameraModel, camera_center, rotation_from_ypr
+from pipeline.errors import DegenerateGeometry
+from pipeline.hypotheses import MatchedTrack
+from pipeline.refinement import (
+    _camera_points,
+    _camera_points_jacobian,
+    _clipped_edges,
+    _pose_from_params,
+    _project,
+    _project_jacobian,
+    _robust_weights,
+)
+from schemas.common import VehicleProfile
+
+_POSE, _DELTA, _SHAPE, _BIAS = slice(0, 6), 6, slice(7, 13), slice(13, 18)
+N_PARAMS = 18
+SHAPE_NAMES = (
+    "z_low_m",
+    "wheel_overhang_m",
+    "wheel_inset_m",
+    "roof_x_front_m",
+    "roof_x_back_m",
+    "roof_inset_m",
+)
+BIAS_NAMES = ("scale", "shift_x_px", "shift_y_px", "grow_x_px", "grow_y_px")
+# Edge offsets of the detector convention from (shift_x, shift_y, grow_x, grow_y), per edge x1, y1, x2, y2.
+_OFFSET_FROM_BIAS = np.array(
+    [[1.0, 0.0, -0.5, 0.0], [0.0, 1.0, 0.0, -0.5], [1.0, 0.0, 0.5, 0.0], [0.0, 1.0, 0.0, 0.5]]
+)
+
+
+@dataclass(frozen=True, slots=True)
+class ModelParams:
+    """Priors and solver settings of the joint fit. Stds are of the prior around the start (cuboid, no bias,
+    the caller's time offset); pixel quantities in distorted image pixels."""
+
+    loss: str = "huber"
+    f_scale_px: float = 2.0
+    max_evaluations: int = 100  # per pass (the weights of the second come from the first's residuals)
+    time_shift_std_s: float = 0.5  # a configured or last estimated offset is a prior, not a requirement
+    # Template: clearance and shoulder heights (m), roof span ends (m along the body) and roof inset (m).
+    shape_std: tuple[float, float, float, float, float, float] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4)
+    scale_std: float = 0.1  # detector box scale about its centre
+    # The detector's convention: boxes shifted as a whole (px) and grown or shrunk by a constant (px). A shift
+    # of every box by d px looks almost exactly like the camera turned by d / f rad, so the data hardly tell
+    # them apart: its prior is what the rotation can be known to (and enters the reported rotation std).
+    # Detectors are trained on boxes drawn symmetric about the object: the prior allows a 2 px shift.
+    shift_std_px: float = 2.0
+    grow_std_px: float = 8.0
+    cluster_s: float = 1.0  # residuals within this much time on one track count as one cluster
+    pose_bias_std_m: float = 0.05  # common GNSS offset of all positions (no number of boxes averages it)
+    min_sigma_px: float = 0.5
+    min_depth_m: float = 0.1
+    border_margin_px: float = 1.0
+    # A left-out traversal disagrees when the others predict its boxes with a mean squared Mahalanobis
+    # residual above this (1 expected: prediction uncertainty and noise both counted; see check_traversals).
+    holdout_chi2_per_residual: float = 4.0
+    shape_step: float = 1e-4  # finite-difference step of the shape parameters (m) and the time shift (s)
+
+    def prior_std(self) -> FloatArray:
+        return np.array(
+            [math.inf] * 6
+            + [self.time_shift_std_s]
+            + list(self.shape_std)
+            + [self.scale_std]
+            + [self.shift_std_px] * 2
+            + [self.grow_std_px] * 2
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class ModelFit:
+    """The joint fit. Pose as in `refinement.Refinement` (local frame); covariance (6, 6) of [w, C], the
+    marginal block of the full 17-parameter sandwich covariance, plus pose_bias_std_m^2 on C.
+
+    time_shift_s / time_shift_std_s: delta (the box stamped t shows the trajectory at t - delta).
+    shape (5,) SHAPE_NAMES, bias (5,) BIAS_NAMES, with their stds.
+    residuals_px (N, 4): model box minus detected box, NaN on clipped edges; box_track_ids, stamps (N,).
+    """
+
+    R_cam_from_local: Rotation
+    t_cam_from_local: Vec3
+    camera_center: Vec3
+    covariance: FloatArray
+    position_std_m: float
+    rotation_std_deg: float
+    time_shift_s: float
+    time_shift_std_s: float
+    shape: FloatArray
+    shape_std: FloatArray
+    bias: FloatArray
+    bias_std: FloatArray
+    residuals_px: FloatArray
+    box_rmse_px: float
+    sigma_px: float
+    used_residuals: int
+    clusters: int
+    box_track_ids: IntArray
+    stamps: Stamps
+    converged: bool
+    iterations: int
+    full_covariance: FloatArray = field(repr=False)
+    row_scale_px: FloatArray = field(repr=False)  # (N, 4) each used residual's effective std (NaN unused)
+    edge_fraction: FloatArray = field(repr=False)  # (4,) per-edge model misfit as a share of the box height
+    rho: float = 0.0  # residual correlation from frame to frame
+
+    def footprint_body_frame(self, vehicle: VehicleProfile) -> FloatArray:
+        """The fitted template's contact with the road: the wheels' rectangle (4, 3), vehicle box frame."""
+        return template_points(self.shape, vehicle)[4:8]
+
+
+def template_points(shape: FloatArray, vehicle: VehicleProfile) -> FloatArray:
+    """The 12 template points (12, 3) in the vehicle box frame for shape parameters (6,) SHAPE_NAMES: the
+    body's lower rectangle (full length and width) at z_low, the wheels' contact rectangle on the road
+    (overhang in from each end, inset from each side) and the roof rectangle at the height H."""
+    L, W, H = vehicle.length, vehicle.width, vehicle.height
+    z_low, overhang, inset, x_front, x_back, y_in = (float(v) for v in shape)
+    rect = np.array([[0.0, 0.0], [L, 0.0], [L, W], [0.0, W]])
+    wheels = np.array(
+        [[overhang, inset], [L - overhang, inset], [L - overhang, W - inset], [overhang, W - inset]]
+    )
+    roof = np.array([[x_back, y_in], [x_front, y_in], [x_front, W - y_in], [x_back, W - y_in]])
+    return np.vstack(
+        [
+            np.column_stack([rect, np.full(4, z_low)]),
+            np.column_stack([wheels, np.zeros(4)]),
+            np.column_stack([roof, np.full(4, H)]),
+        ]
+    )
+
+
+def cuboid_shape(vehicle: VehicleProfile) -> FloatArray:
+    """Shape parameters of the profile's cuboid: the start and the prior mean."""
+    return np.array([0.0, 0.0, 0.0, vehicle.length, 0.0, 0.0])
+
+
+class PoseSampler:
+    """The trajectory as functions of time: poses at float seconds (linear in x, y, z, pitch, roll,
+    unwrapped yaw), held at the ends."""
+
+    def __init__(self, trajectory: Trajectory) -> None:
+        if len(trajectory.stamps) < 2:
+            raise DegenerateGeometry("joint fit: the trajectory has fewer than 2 poses")
+        self.t0 = int(trajectory.stamps[0])
+        self.times = (trajectory.stamps - self.t0).astype(np.float64) / 1e9
+        poses = trajectory.poses.copy()
+        poses[:, 3] = np.unwrap(poses[:, 3])
+        self.poses = poses
+
+    def seconds(self, stamps: Stamps) -> FloatArray:
+        return np.asarray((stamps - self.t0).astype(np.float64) / 1e9, dtype=np.float64)
+
+    def at(self, t_s: FloatArray) -> FloatArray:
+        return np.column_stack([np.interp(t_s, self.times, self.poses[:, k]) for k in range(6)])
+
+
+@dataclass(frozen=True, slots=True)
+class _Data:
+    boxes: Boxes
+    t_s: FloatArray
+    track_ids: IntArray
+    stamps: Stamps
+    used: BoolArray  # (N, 4)
+
+
+def fit_vehicle_model(
+    R_cam_from_local: Rotation,
+    t_cam_from_local: Vec3,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> ModelFit:
+    """Fit pose, time shift, template and detector bias to the tracks' boxes, from the given pose."""
+    sampler = PoseSampler(trajectory)
+    if not tracks or sum(len(t.boxes) for t in tracks) == 0:
+        raise DegenerateGeometry("joint fit: no boxes")
+    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
+    stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in tracks])
+    data = _Data(
+        boxes=boxes,
+        t_s=sampler.seconds(stamps),
+        track_ids=np.concatenate([np.full(len(t.boxes), t.track_id, dtype=np.int64) for t in tracks]),
+        stamps=stamps,
+        used=~_clipped_edges(boxes, camera, params.border_margin_px),
+    )
+    if int(data.used.sum()) < 2 * N_PARAMS:
+        raise DegenerateGeometry(
+            f"joint fit: {int(data.used.sum())} unclipped box edges, need >= {2 * N_PARAMS}"
+        )
+    R0 = np.asarray(R_cam_from_local, dtype=np.float64)
+    C0 = camera_center(R0, np.asarray(t_cam_from_local, dtype=np.float64))
+    mean = np.zeros(N_PARAMS)
+    mean[_SHAPE] = cuboid_shape(vehicle)
+    prior_std = params.prior_std()
+    model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
+    centres = sampler.at(data.t_s)[:, :3]
+    scene_range = max(1.0, float(np.median(np.linalg.norm(centres - C0, axis=1))))
+    x_scale = np.concatenate([[1.0 / scene_range] * 3, [1.0] * 3, [0.05], [0.1] * 6, [0.01], [1.0] * 4])
+    # Two passes: the data rows are weighted against the priors and each other by the residuals' effective
+    # std (per edge and box size, times the square root of their correlation's variance inflation), which
+    # the first pass measures.
+    x = mean.copy()
+    evaluations, converged = 0, False
+    for first in (True, False):
+        if first:
+            model.data_scale = np.full(model.data_rows, 2.0 * params.f_scale_px)
+            model.f_scale = 0.5
+        else:
+            model.weigh(x)
+        solution = least_squares(
+            model.residuals,
+            x,
+            jac=model.jacobian,
+            method="trf",
+            loss=params.loss,
+            f_scale=model.f_scale,
+            x_scale=x_scale,
+            max_nfev=params.max_evaluations,
+        )
+        x = solution.x
+        evaluations += int(solution.nfev)
+        converged = bool(solution.status > 0)
+    return _assemble(model, x, converged, evaluations, scene_range)
+
+
+class _Model:
+    """Residuals (data rows, then prior rows) and their Jacobian; the last evaluation is cached."""
+
+    def __init__(
+        self,
+        data: _Data,
+        sampler: PoseSampler,
+        R0: Rotation,
+        C0: Vec3,
+        camera: CameraModel,
+        vehicle: VehicleProfile,
+        params: ModelParams,
+        mean: FloatArray,
+        prior_std: FloatArray,
+    ) -> None:
+        self.data, self.sampler, self.R0, self.C0 = data, sampler, R0, C0
+        self.camera, self.vehicle, self.params = camera, vehicle, params
+        self.mean = mean
+        self.has_prior = np.isfinite(prior_std)
+        self.prior_weight = np.where(self.has_prior, 1.0 / np.where(self.has_prior, prior_std, 1.0), 0.0)
+        self.box_index, self.edge_index = np.nonzero(data.used)
+        self._cache: dict[str, FloatArray] = {}
+        self.data_scale = np.ones(len(self.box_index))  # px per unit, per data row
+        self.f_scale = 1.0  # where the robust loss bends, in data-row units
+        self.sigma_px = params.f_scale_px
+        self.edge_fraction = np.zeros(4)
+        self.rho = 0.0
+        heights = data.boxes[:, 3] - data.boxes[:, 1]
+        self.row_height = np.maximum(heights, 1.0)[self.box_index]
+
+    def pixel_residuals(self, x: FloatArray) -> FloatArray:
+        self._evaluate(x)
+        return np.asarray(self._cache["r"][: self.data_rows] * self.data_scale, dtype=np.float64)
+
+    def weigh(self, x: FloatArray) -> None:
+        """Per-edge reliability from the residuals at x: each row's std is sqrt(s0^2 + (c_k h)^2), s0 the
+        detector's noise (px) and c_k the share of the box height h by which edge k's model misses (a body
+        template never matches every silhouette: the bottom edge of a near car misses by several per cent,
+        its sides by one or two); rows are then divided by that std times sqrt((1 + rho) / (1 - rho)), the
+        variance inflation of the residuals' correlation from frame to frame. Sets data_scale, f_scale."""
+        r = self.pixel_residuals(x)
+        edge, h = self.edge_index, self.row_height
+        spread = 1.4826 * float(np.median(np.abs(r))) if len(r) else 1.0
+        inlier = np.abs(r) <= max(3.0 * spread, 3.0 * self.params.min_sigma_px)
+        design = np.zeros((int(inlier.sum()), 5))
+        design[:, 0] = 1.0
+        design[np.arange(len(design)), 1 + edge[inlier]] = h[inlier] ** 2
+        solution, _ = nnls(design, r[inlier] ** 2) if len(design) >= 5 else (np.zeros(5), 0.0)
+        s0_squared = max(float(solution[0]), self.params.min_sigma_px**2)
+        self.sigma_px = math.sqrt(s0_squared)
+        self.edge_fraction = np.sqrt(solution[1:])
+        sigma = np.sqrt(s0_squared + (self.edge_fraction[edge] * h) ** 2)
+        weights = _robust_weights(r / sigma, self.params.loss, 2.0)  # type: ignore[arg-type]
+        bi = self.box_index
+        self.rho = _lag_one_correlation(
+            r / sigma * np.sqrt(weights), self.data.track_ids[bi], self.data.t_s[bi], edge
+        )
+        inflation = math.sqrt((1.0 + self.rho) / (1.0 - self.rho))
+        self.data_scale = sigma * inflation
+        self.f_scale = 2.0 / inflation  # the loss bends at 2 of a row's own std
+        self._cache = {}  # rows are scaled anew
+
+    # Raw tight boxes of the template and the points forming their edges.
+    def raw(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation]:
+        R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
+        poses = self.sampler.at(self.data.t_s - x[_DELTA])
+        points = template_points(x[_SHAPE], self.vehicle) - np.asarray(self.vehicle.imu_offset)
+        Rv = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
+        world = np.einsum("nij,kj->nki", Rv, points) + poses[:, None, :3]
+        n, k = world.shape[:2]
+        cam = _camera_points(world.reshape(-1, 3), R, C)
+        uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
+        corner = np.column_stack(
+            [uv[:, :, 0].argmin(1), uv[:, :, 1].argmin(1), uv[:, :, 0].argmax(1), uv[:, :, 1].argmax(1)]
+        )
+        rows = np.arange(n)[:, None]
+        axis = np.array([0, 1, 0, 1])
+        raw = uv[rows, corner, axis]
+        return raw, cam.reshape(n, k, 3), corner, R
+
+    @staticmethod
+    def biased(raw: Boxes, bias: FloatArray) -> Boxes:
+        s = bias[0]
+        x1, y1, x2, y2 = raw.T
+        return (
+            np.column_stack(
+                [
+                    x1 * (1 + s / 2) - x2 * s / 2,
+                    y1 * (1 + s / 2) - y2 * s / 2,
+                    x2 * (1 + s / 2) - x1 * s / 2,
+                    y2 * (1 + s / 2) - y1 * s / 2,
+                ]
+            )
+            + _OFFSET_FROM_BIAS @ bias[1:]
+        )
+
+    def _evaluate(self, x: FloatArray) -> None:
+        if "x" in self._cache and np.array_equal(self._cache["x"], x):
+            return
+        raw, cam, corner, R = self.raw(x)
+        model = self.biased(raw, x[_BIAS])
+        bi, ei = self.box_index, self.edge_index
+        residual = model[bi, ei] - self.data.boxes[bi, ei]
+        m = len(bi)
+        J = np.zeros((m, N_PARAMS))
+        # Pose: the edge-forming point's projection (analytic), through the bias transform.
+        s = x[_BIAS][0]
+        axis = np.array([0, 1, 0, 1])
+        opposite = np.array([2, 3, 0, 1])
+        d_raw = np.zeros((len(raw), 4, 6))
+        n = len(raw)
+        for edge in range(4):
+            pts = cam[np.arange(n), corner[:, edge]]
+            d_uv = _project_jacobian(
+                pts, _camera_points_jacobian(pts, R, x[:3]), self.camera, self.params.min_depth_m
+            )
+            d_raw[:, edge, :] = d_uv[:, axis[edge], :]
+        d_model = (1 + s / 2) * d_raw - (s / 2) * d_raw[:, opposite, :]
+        J[:, _POSE] = d_model[bi, ei]
+        # Time shift and template: forward differences of the raw boxes.
+        for j in range(_DELTA, _SHAPE.stop):
+            step = self.params.shape_step
+            xp = x.copy()
+            xp[j] += step
+            raw_p, _, _, _ = self.raw(xp)
+            J[:, j] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
+        # Bias: analytic.
+        J[:, _BIAS.start] = ((raw - raw[:, opposite]) / 2.0)[bi, ei]
+        J[:, _BIAS.start + 1 :] = _OFFSET_FROM_BIAS[ei]
+        prior_r = ((x - self.mean) * self.prior_weight)[self.has_prior]
+        prior_J = np.diag(self.prior_weight)[self.has_prior]
+        self._cache = {
+            "x": x.copy(),
+            "r": np.concatenate([residual / self.data_scale, prior_r]),
+            "J": np.vstack([J / self.data_scale[:, None], prior_J]),
+            "model": model,
+        }
+
+    def residuals(self, x: FloatArray) -> FloatArray:
+        self._evaluate(x)
+        return self._cache["r"]
+
+    def jacobian(self, x: FloatArray) -> FloatArray:
+        self._evaluate(x)
+        return self._cache["J"]
+
+    @property
+    def data_rows(self) -> int:
+        return len(self.box_index)
+
+
+def _assemble(
+    model: _Model, x: FloatArray, converged: bool, evaluations: int, scene_range: float
+) -> ModelFit:
+    params = model.params
+    r_all, J_all = model.residuals(x), model.jacobian(x)
+    m = model.data_rows
+    r, J = r_all[:m], J_all[:m]  # in units of the effective residual std (model.data_scale px)
+    J_prior = J_all[m:]
+    weights = _robust_weights(r, params.loss, model.f_scale)  # type: ignore[arg-type]
+    sigma = model.sigma_px
+    # Scene units for conditioning: rotation scaled by the scene range.
+    scale = np.ones(N_PARAMS)
+    scale[:3] = scene_range
+    Js = J / scale
+    Jp = J_prior / scale
+    prior_info = Jp.T @ Jp
+    A = Js.T @ (weights[:, None] * Js) + prior_info
+    # Clusters: one track and cluster_s seconds.
+    data = model.data
+    bi = model.box_index
+    block = np.floor((data.t_s[bi] - data.t_s.min()) / params.cluster_s).astype(np.int64)
+    keys = np.column_stack([data.track_ids[bi], block])
+    _, cluster = np.unique(keys, axis=0, return_inverse=True)
+    cluster = cluster.ravel()
+    clusters = int(cluster.max()) + 1
+    scores = (weights * r)[:, None] * Js
+    sums = np.zeros((clusters, N_PARAMS))
+    np.add.at(sums, cluster, scores)
+    correction = clusters / max(clusters - 1, 1)
+    B = correction * (sums.T @ sums) + prior_info
+    A_inv = _inverse(A)
+    sandwich = A_inv @ B @ A_inv
+    # With few clusters the sandwich misses directions (B has at most one rank per cluster); the classical
+    # covariance (the data rows already carry the variance inflation of their correlation) stands in.
+    classical = A_inv
+    # Never below the classical covariance in any direction: add the positive part of their difference.
+    difference = classical - sandwich
+    values, vectors = np.linalg.eigh((difference + difference.T) / 2)
+    covariance_scene = sandwich + (vectors * np.maximum(values, 0.0)) @ vectors.T
+    covariance_full = covariance_scene / np.outer(scale, scale)
+    pose_cov = covariance_full[:6, :6].copy()
+    pose_cov[3:, 3:] += params.pose_bias_std_m**2 * np.eye(3)
+    R, C = _pose_from_params(x[_POSE], model.R0, model.C0)
+    model_boxes = model._cache["model"]
+    residuals = np.full(data.boxes.shape, np.nan)
+    residuals[data.used] = (model_boxes - data.boxes)[data.used]
+    row_scale = np.full(data.boxes.shape, np.nan)
+    row_scale[model.box_index, model.edge_index] = model.data_scale
+    stds = np.sqrt(np.maximum(np.diag(covariance_full), 0.0))
+    finite = np.isfinite(residuals)
+    return ModelFit(
+        R_cam_from_local=R,
+        t_cam_from_local=-R @ C,
+        camera_center=C,
+        covariance=pose_cov,
+        position_std_m=math.sqrt(max(float(np.linalg.eigvalsh(pose_cov[3:, 3:])[-1]), 0.0)),
+        rotation_std_deg=math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(pose_cov[:3, :3])[-1]), 0.0))),
+        time_shift_s=float(x[_DELTA]),
+        time_shift_std_s=float(stds[_DELTA]),
+        shape=x[_SHAPE].copy(),
+        shape_std=stds[_SHAPE].copy(),
+        bias=x[_BIAS].copy(),
+        bias_std=stds[_BIAS].copy(),
+        residuals_px=residuals,
+        box_rmse_px=float(np.sqrt(np.mean(residuals[finite] ** 2))) if finite.any() else math.nan,
+        sigma_px=sigma,
+        used_residuals=m,
+        clusters=clusters,
+        box_track_ids=data.track_ids,
+        stamps=data.stamps,
+        converged=converged,
+        iterations=evaluations,
+        full_covariance=covariance_full,
+        row_scale_px=row_scale,
+        edge_fraction=model.edge_fraction.copy(),
+        rho=model.rho,
+    )
+
+
+def _lag_one_correlation(
+    residual: FloatArray, track_ids: IntArray, t_s: FloatArray, edges: IntArray
+) -> float:
+    """Pooled correlation of consecutive residuals of the same edge on the same track, clipped to
+    [0, 0.95]: the variance of a mean of n AR(1) residuals is (1 + rho) / (1 - rho) times the i.i.d. one."""
+    order = np.lexsort((t_s, edges, track_ids))
+    r, same = residual[order], np.zeros(len(order) - 1, dtype=bool) if len(order) else np.zeros(0, bool)
+    if len(order) < 3:
+        return 0.0
+    same = (track_ids[order][1:] == track_ids[order][:-1]) & (edges[order][1:] == edges[order][:-1])
+    numerator = float(np.sum(r[1:][same] * r[:-1][same]))
+    denominator = float(np.sum(r[1:][same] ** 2 + r[:-1][same] ** 2)) / 2.0
+    if denominator <= 0.0:
+        return 0.0
+    return min(0.95, max(0.0, numerator / denominator))
+
+
+def _inverse(A: FloatArray) -> FloatArray:
+    values, vectors = np.linalg.eigh((A + A.T) / 2)
+    values = np.maximum(values, max(float(values[-1]), 1e-300) * 1e-14)
+    return np.asarray((vectors / values) @ vectors.T, dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Trimming, delta_p of the fitted model, and the check of the traversals against each other
+# ---------------------------------------------------------------------------------------------------------
+
+
+def fit_trimmed(
+    R_cam_from_local: Rotation,
+    t_cam_from_local: Vec3,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+    floor: float = 0.08,
+    rounds: int = 2,
+) -> tuple[ModelFit, list[MatchedTrack]]:
+    """`fit_vehicle_model`, then boxes whose misfit (max |edge residual| / box height) exceeds
+    max(floor, 3 x median misfit) are dropped and the fit repeated from its own solution (an identity switch
+    or an occluder makes misfits of tens of per cent that even a robust loss lets weigh). Returns the fit and
+    the tracks it used."""
+    fit = fit_vehicle_model(R_cam_from_local, t_cam_from_local, tracks, trajectory, camera, vehicle, params)
+    used = list(tracks)
+    for _ in range(rounds):
+        kept = _trim_by(fit, used, floor)
+        if sum(len(t.boxes) for t in kept) == sum(len(t.boxes) for t in used):
+            break
+        used = kept
+        fit = fit_vehicle_model(
+            fit.R_cam_from_local, fit.t_cam_from_local, used, trajectory, camera, vehicle, params
+        )
+    return fit, used
+
+
+def _trim_by(fit: ModelFit, tracks: Sequence[MatchedTrack], floor: float) -> list[MatchedTrack]:
+    boxes = np.concatenate([t.boxes for t in tracks])
+    heights = np.maximum(boxes[:, 3] - boxes[:, 1], 1.0)
+    residuals = fit.residuals_px
+    finite_rows = np.isfinite(residuals).any(axis=1)
+    misfit = np.full(len(boxes), np.inf)
+    misfit[finite_rows] = np.nanmax(np.abs(residuals[finite_rows]), axis=1) / heights[finite_rows]
+    finite = misfit[np.isfinite(misfit)]
+    threshold = max(floor, 3.0 * float(np.median(finite))) if len(finite) else floor
+    keep = misfit <= threshold
+    kept: list[MatchedTrack] = []
+    start = 0
+    for track in tracks:
+        rows = keep[start : start + len(track.boxes)]
+        start += len(track.boxes)
+        if rows.any():
+            kept.append(
+                MatchedTrack(track.track_id, track.stamps[rows], track.boxes[rows], track.poses[rows])
+            )
+    return kept
+
+
+def unbiased_boxes(boxes: Boxes, bias: FloatArray) -> Boxes:
+    """Detected boxes with the fitted detector convention undone: the boxes the template's tight box
+    predicts (inverse of the scale about the centre and the edge offsets)."""
+    s = float(bias[0])
+    shifted = boxes - _OFFSET_FROM_BIAS @ bias[1:]
+    a, b = 1.0 + s / 2.0, -s / 2.0  # [x1', x2'] = [[a, b], [b, a]] [x1, x2]
+    det = a * a - b * b
+    x1, y1, x2, y2 = shifted.T
+    return np.column_stack(
+        [(a * x1 - b * x2) / det, (a * y1 - b * y2) / det, (a * x2 - b * x1) / det, (a * y2 - b * y1) / det]
+    )
+
+
+def model_footprints(
+    fit: ModelFit, tracks: Sequence[MatchedTrack], trajectory: Trajectory, vehicle: VehicleProfile
+) -> FloatArray:
+    """The fitted template's lowest rectangle at every box (N, 4, 3), local frame, at its time shift."""
+    sampler = PoseSampler(trajectory)
+    stamps = np.concatenate([t.stamps for t in tracks])
+    poses = sampler.at(sampler.seconds(stamps) - fit.time_shift_s)
+    points = fit.footprint_body_frame(vehicle) - np.asarray(vehicle.imu_offset)
+    Rv = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
+    return np.asarray(np.einsum("nij,kj->nki", Rv, points) + poses[:, None, :3], dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True)
+class TraversalCheck:
+    """Leave-one-traversal-out fits of the final model.
+
+    traversals: clusters of tracks (a new one after a gap of more than `gap_s` without the vehicle's track);
+    covariance (6, 6): the jackknife covariance of [w, C] over them (model error between drive-pasts
+    included), None with fewer than 3 clusters; shift_m / angle_deg: the largest move of the pose when one
+    traversal is left out; disagreeing: reason text when some left-out fit moves beyond 3 of its own stds
+    (or cannot be fitted), else ''."""
+
+    traversals: int
+    covariance: FloatArray | None
+    shift_m: float
+    angle_deg: float
+    disagreeing: str
+
+
+def check_traversals(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+    gap_s: float = 5.0,
+) -> TraversalCheck:
+    """Fit the model without each traversal in turn (from the full fit) and compare (see TraversalCheck)."""
+    clusters = _traversal_clusters(tracks, gap_s)
+    if len(clusters) < 2:
+        return TraversalCheck(len(clusters), None, 0.0, 0.0, "")
+    quick = replace(params, max_evaluations=max(8, params.max_evaluations // 2))
+    deltas: list[FloatArray] = []
+    worst_shift = worst_angle = 0.0
+    problems: list[str] = []
+    for index in range(len(clusters)):
+        rest = [t for i, c in enumerate(clusters) if i != index for t in c]
+        try:
+            loo = fit_vehicle_model(
+                fit.R_cam_from_local, fit.t_cam_from_local, rest, trajectory, camera, vehicle, quick
+            )
+        except DegenerateGeometry as err:
+            problems.append(f"without traversal {index + 1}: {err}")
+            continue
+        # R = R_fit expm(-[w]x) (the convention of ModelFit.covariance)
+        w = -_rotation_vector(fit.R_cam_from_local.T @ loo.R_cam_from_local)
+        dC = loo.camera_center - fit.camera_center
+        deltas.append(np.concatenate([w, dC]))
+        shift, angle = float(np.linalg.norm(dC)), math.degrees(float(np.linalg.norm(w)))
+        worst_shift, worst_angle = max(worst_shift, shift), max(worst_angle, angle)
+        # Cross-validation: the left-out traversal's boxes as predicted by the others, against how well the
+        # joint fit reproduces them. A drive-past that is another vehicle's, or seen through a different
+        # clock or body, is predicted far worse than it is fitted.
+        held_out = clusters[index]
+        statistic, predicted = _holdout_statistic(fit, loo, held_out, trajectory, camera, vehicle, params)
+        if shift > 3.0 * loo.position_std_m or angle > 3.0 * loo.rotation_std_deg:
+            problems.append(
+                f"without traversal {index + 1} the pose moves {shift:.2f} m / {angle:.2f} deg "
+                f"(its 3 std: {3 * loo.position_std_m:.2f} m / {3 * loo.rotation_std_deg:.2f} deg)"
+            )
+        elif statistic > params.holdout_chi2_per_residual:
+            problems.append(
+                f"the others predict traversal {index + 1}'s boxes {predicted:.1f} px off, "
+                f"{statistic:.1f} x the variance their uncertainty and the detector's noise allow"
+            )
+    k = len(deltas)
+    covariance = None
+    # With two traversals each left-out fit is a single drive-past, often nearly degenerate (one straight
+    # pass leaves the rotation about the road loose): its scatter says how weak a single pass is, not how
+    # uncertain the joint fit is. The jackknife needs at least three; two are still checked for agreement.
+    if k >= 3:
+        stacked = np.array(deltas)
+        centred = stacked - stacked.mean(axis=0)
+        covariance = (k - 1) / k * centred.T @ centred
+    reason = ""
+    if problems:
+        reason = f"traversals disagree by {worst_shift:.2f} m / {worst_angle:.2f} deg: " + "; ".join(problems)
+    return TraversalCheck(len(clusters), covariance, worst_shift, worst_angle, reason)
+
+
+def combined_covariance(fit: ModelFit, check: TraversalCheck) -> FloatArray:
+    """The fit's covariance, raised in every direction where the traversals scatter more (jackknife)."""
+    if check.covariance is None:
+        return fit.covariance
+    difference = check.covariance - fit.covariance
+    values, vectors = np.linalg.eigh((difference + difference.T) / 2)
+    return np.asarray(fit.covariance + (vectors * np.maximum(values, 0.0)) @ vectors.T, dtype=np.float64)
+
+
+def _holdout_statistic(
+    fit: ModelFit,
+    loo: ModelFit,
+    held_out: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> tuple[float, float]:
+    """How well the fit without a traversal predicts that traversal's boxes: r^T (D + J S J^T)^-1 r / m
+    over its m residuals r (px), with S the left-out fit's full covariance, J the residuals' Jacobian and D
+    the detector noise and model misfit the other traversals show (per edge and box size, correlation
+    included); residuals beyond 5 of their own std are clipped there (outlier boxes). Also returns the
+    median |r|."""
+    sampler = PoseSampler(trajectory)
+    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in held_out])
+    stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in held_out])
+    data = _Data(
+        boxes=boxes,
+        t_s=sampler.seconds(stamps),
+        track_ids=np.zeros(len(boxes), dtype=np.int64),
+        stamps=stamps,
+        used=~_clipped_edges(boxes, camera, params.border_margin_px),
+    )
+    x = np.zeros(N_PARAMS)
+    x[_DELTA], x[_SHAPE], x[_BIAS] = loo.time_shift_s, loo.shape, loo.bias
+    model = _Model(
+        data, sampler, loo.R_cam_from_local, loo.camera_center, camera, vehicle, params, x, params.prior_std()
+    )
+    model.data_scale = np.ones(model.data_rows)
+    r = model.residuals(x)[: model.data_rows]
+    J = model.jacobian(x)[: model.data_rows]
+    if len(r) == 0:
+        return 0.0, 0.0
+    height = np.maximum(boxes[:, 3] - boxes[:, 1], 1.0)[model.box_index]
+    # The noise as the other traversals measured it: a foreign traversal would inflate the joint fit's.
+    sigma = np.sqrt(loo.sigma_px**2 + (loo.edge_fraction[model.edge_index] * height) ** 2)
+    sigma *= math.sqrt((1.0 + loo.rho) / (1.0 - loo.rho))
+    r = np.clip(r, -5.0 * sigma, 5.0 * sigma)
+    # Woodbury: (D + J S J^T)^-1 = D^-1 - D^-1 J (S^-1 + J^T D^-1 J)^-1 J^T D^-1.
+    inv_d = 1.0 / sigma**2
+    S_inv = _inverse(loo.full_covariance)
+    inner = S_inv + J.T @ (inv_d[:, None] * J)
+    v = J.T @ (inv_d * r)
+    quadratic = float(np.sum(inv_d * r * r) - v @ np.linalg.solve(inner, v))
+    return max(quadratic, 0.0) / len(r), float(np.median(np.abs(r)))
+
+
+def _median_abs(residuals: FloatArray) -> float:
+    finite = residuals[np.isfinite(residuals)]
+    return float(np.median(np.abs(finite))) if len(finite) else math.inf
+
+
+def _traversal_clusters(tracks: Sequence[MatchedTrack], gap_s: float) -> list[list[MatchedTrack]]:
+    ordered = sorted(tracks, key=lambda t: int(t.stamps[0]))
+    clusters: list[list[MatchedTrack]] = []
+    end = None
+    for track in ordered:
+        if end is None or int(track.stamps[0]) - end > gap_s * 1e9:
+            clusters.append([])
+        clusters[-1].append(track)
+        end = max(end or 0, int(track.stamps[-1]))
+    return clusters
+
+
+def _rotation_vector(R: Rotation) -> FloatArray:
+    angle = math.acos(min(1.0, max(-1.0, (float(np.trace(R)) - 1.0) / 2.0)))
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    norm = float(np.linalg.norm(axis))
+    if norm < 1e-12:
+        return np.zeros(3)
+    return np.asarray(axis / norm * angle, dtype=np.float64)
+
+
+def predicted_residuals(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> FloatArray:
+    """|model edge - detected edge| (N, 4) px of the fitted model on any boxes (NaN on clipped edges)."""
+    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
+    stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in tracks])
+    sampler = PoseSampler(trajectory)
+    data = _Data(
+        boxes=boxes,
+        t_s=sampler.seconds(stamps),
+        track_ids=np.zeros(len(boxes), dtype=np.int64),
+        stamps=stamps,
+        used=~_clipped_edges(boxes, camera, params.border_margin_px),
+    )
+    x = np.zeros(N_PARAMS)
+    x[_DELTA], x[_SHAPE], x[_BIAS] = fit.time_shift_s, fit.shape, fit.bias
+    model = _Model(
+        data, sampler, fit.R_cam_from_local, fit.camera_center, camera, vehicle, params, x, params.prior_std()
+    )
+    raw, _, _, _ = model.raw(x)
+    return np.where(data.used, np.abs(model.biased(raw, fit.bias) - boxes), np.nan)
+
+
+def model_box_error(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> float:
+    """Scale-free misfit of the fitted model on all `tracks` (trimmed boxes included): median over boxes of
+    max |model edge - detected edge| / box height; inf without a usable box. The right vehicle under the
+    right pose reproduces its boxes to the detector's noise; another vehicle's track does not."""
+    residuals = predicted_residuals(fit, tracks, trajectory, camera, vehicle, params)
+    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
+    rows = np.isfinite(residuals).any(axis=1)
+    if not rows.any():
+        return math.inf
+    heights = np.maximum(boxes[rows, 3] - boxes[rows, 1], 1.0)
+    return float(np.median(np.nanmax(residuals[rows], axis=1) / heights))
+
+
+def cuboid_params(params: ModelParams) -> ModelParams:
+    """The same fit with the body held to the profile's cuboid and no detector convention: only pose and
+    time shift free (the first simulator's world, and any detector that boxes the cuboid)."""
+    tiny = 1e-6
+    return replace(params, shape_std=(tiny,) * 6, scale_std=tiny, shift_std_px=tiny, grow_std_px=tiny)
+
+
+def misfit_statistic(fit: ModelFit, scale_px: FloatArray) -> float:
+    """Robust chi-square of a fit's residuals in units of the given effective stds (N, 4): the Huber
+    rho of each (quadratic to 2, then linear), summed over the residuals both have."""
+    z = np.abs(fit.residuals_px / scale_px)
+    z = z[np.isfinite(z)]
+    return float(np.sum(np.where(z <= 2.0, z**2, 4.0 * z - 4.0)))
+
+
+def cuboid_suffices(full: ModelFit, cuboid: ModelFit, threshold: float) -> bool:
+    """True when the cuboid explains the boxes as well as the full model within chance: the drop of the
+    robust chi-square (in the full model's effective stds) from the 11 extra parameters stays below
+    `threshold` (chi-square with 11 degrees of freedom: 24.7 at 1 %)."""
+    scale = full.row_scale_px
+    return misfit_statistic(cuboid, scale) - misfit_statistic(full, scale) <= threshold
