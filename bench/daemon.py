@@ -15,10 +15,12 @@ daemon (its inbox), never dropped by the publisher.
              MCAP logging on) fed the mix in real time for --seconds: messages published, received, accepted,
              dropped, rejected; inbox depth over time; CPU of the daemon process; MCAP bytes/s and messages.
   ceiling    the same daemon, the mix time-compressed (stamps keep their spacing, so V2X stays plausible)
-             and published at each of --rates messages/s for --step-s. A rate passes when every message is
-             accepted (none dropped or rejected) and the daemon kept up: published / (step + time until the
-             inbox was empty again) >= 95 % of the rate. The bounded inbox (ingest.queue_size, 200,000) could
-             absorb a whole 10 s burst, so the drain time is part of the criterion. Then one unpaced step.
+             and published at each of --rates messages/s for --step-s, Foxglove views recorded beside the
+             raw channels as in the field (--no-foxglove-views: raw channels only, to compare). A rate
+             passes when every message is accepted (none dropped or rejected) and the daemon kept up:
+             published / (step + time until the inbox was empty again) >= 95 % of the rate. The bounded
+             inbox (ingest.queue_size, 200,000) could absorb a whole 10 s burst, so the drain time is part
+             of the criterion. Then one unpaced step.
   rss        a Daemon in this process on a ScaledClock, --rss-hours (24) simulated at --rss-rate x, fed
              through Zenoh by the publisher process at the scaled stamps. Detection and V2X rates are divided
              by --rss-divisor (5: 2 fps and 10 Hz; message sizes kept) so a day fits in minutes. Rotation
@@ -731,15 +733,19 @@ class CliRig:
 
 
 @contextlib.contextmanager
-def cli_rig(site: Site) -> Iterator[CliRig]:
-    """Start the daemon and the publisher; on exit stop both (SIGTERM timed) and read the MCAP summary."""
+def cli_rig(site: Site, foxglove_views: bool = True) -> Iterator[CliRig]:
+    """Start the daemon and the publisher; on exit stop both (SIGTERM timed) and read the MCAP summary.
+    `foxglove_views`: storage.foxglove_views (the recording's LocationFix / ImageAnnotations beside the raw
+    channels; on by default, as in the field)."""
     from daemon.bus import free_loopback_port
+    from schemas.config import StorageConfig
 
     with tempfile.TemporaryDirectory(prefix="rsucal-bench-daemon-") as tmp:
         directory = Path(tmp)
         port = free_loopback_port()
         endpoint = f"tcp/127.0.0.1:{port}"
-        config = site_config(site, directory / "state", port)
+        storage = StorageConfig(state_dir=directory / "state", foxglove_views=foxglove_views)
+        config = site_config(site, directory / "state", port, storage=storage)
         daemon = DaemonProcess(config, directory)
         publisher = PublisherProcess(site, endpoint)
         with client_session(endpoint) as client:
@@ -860,11 +866,13 @@ def print_sustained(r: dict[str, Any]) -> None:
 # ---------------------------------------------------------------------------------------------- ceiling
 
 
-def run_ceiling(rates: Sequence[float], step_s: float, py_spy_rate: float | None = None) -> dict[str, Any]:
+def run_ceiling(
+    rates: Sequence[float], step_s: float, py_spy_rate: float | None = None, foxglove_views: bool = True
+) -> dict[str, Any]:
     """Steps of increasing rate, the mix time-compressed; then one unpaced step."""
     steps: list[dict[str, Any]] = []
     py_spy: dict[str, Any] | None = None
-    with cli_rig(build_site(MIX, THROUGHPUT_PATTERN)) as rig:
+    with cli_rig(build_site(MIX, THROUGHPUT_PATTERN), foxglove_views) as rig:
         failures = 0
         plan: list[float | None] = [*rates, None]
         for rate in plan:
@@ -887,6 +895,7 @@ def run_ceiling(rates: Sequence[float], step_s: float, py_spy_rate: float | None
     accepted_total = sum(s.get("accepted", 0) for s in steps)
     return {
         "mix": MIX.describe(),
+        "foxglove_views": foxglove_views,
         "step_s": step_s,
         "steps": steps,
         "ceiling_msgs_s": ceiling,
@@ -954,7 +963,11 @@ def _ceiling_step(
 
 
 def print_ceiling(r: dict[str, Any]) -> None:
-    print(f"\n== ceiling: `rsucal daemon`, {r['mix']} time-compressed, {r['step_s']:.0f} s per rate")
+    views = "on" if r.get("foxglove_views", True) else "off"
+    print(
+        f"\n== ceiling: `rsucal daemon`, {r['mix']} time-compressed, {r['step_s']:.0f} s per rate; "
+        f"Foxglove views {views} (storage.foxglove_views)"
+    )
     header = (
         f"{'target/s':>9}{'published/s':>12}{'accepted':>10}{'lost':>7}{'dropped':>8}{'rejected':>9}"
         f"{'in-step acc/s':>14}{'inbox max':>10}{'at end':>8}{'drain s':>8}{'processed/s':>12}{'CPU %':>7}"
@@ -1926,6 +1939,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--py-spy-rate", type=float, help="ceiling: py-spy the daemon during this rate's step"
     )
+    parser.add_argument(
+        "--no-foxglove-views",
+        action="store_true",
+        help="ceiling: record the raw channels only (storage.foxglove_views false), to compare",
+    )
     parser.add_argument("--rss-hours", type=int, default=24, help="rss: simulated hours")
     parser.add_argument("--rss-rate", type=float, default=480.0, help="rss: time acceleration")
     parser.add_argument("--rss-divisor", type=int, default=5, help="rss: message rates divided by this")
@@ -1964,7 +1982,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             result = run_sustained(args.seconds)
             print_sustained(result)
         elif part == "ceiling":
-            result = run_ceiling(rates, args.step_s, args.py_spy_rate)
+            result = run_ceiling(rates, args.step_s, args.py_spy_rate, not args.no_foxglove_views)
             print_ceiling(result)
         elif part == "rss":
             result = run_rss(args.rss_hours, args.rss_rate, args.rss_divisor, args.tracemalloc)

@@ -326,12 +326,14 @@ class Bus:
         """Put a DetectionFrame the daemon's own detector made on `.../detections`, for other sessions only
         (Locality.REMOTE: our own subscriber must not ingest it a second time). Called from the camera's
         detector thread; a slow remote loses frames (congestion DROP) rather than holding the detector."""
-        session = self._session
-        if session is None or self._state != "open":
-            raise BusError(f"bus of rsu {self._rsu_id} is not open")
         key = detections_key(self._rsu_id, camera_id)
         try:
+            # The put too under the lock close() takes the publishers with: undeclaring a publisher while
+            # another thread puts on it raises zenoh's "Already borrowed" (seen in bench.daemon's stop).
             with self._lock:
+                session = self._session
+                if session is None or self._state != "open":
+                    raise BusError(f"bus of rsu {self._rsu_id} is not open")
                 publisher = self._detection_publishers.get(camera_id)
                 if publisher is None:
                     publisher = session.declare_publisher(
@@ -341,7 +343,7 @@ class Bus:
                         allowed_destination=zenoh.Locality.REMOTE,
                     )
                     self._detection_publishers[camera_id] = publisher
-            publisher.put(payload)
+                publisher.put(payload)
         except zenoh.ZError as err:
             raise BusError(f"put {key}: {zenoh_message(err)}") from err
 

@@ -352,9 +352,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         preset=args.preset,
         seed=args.seed,
         rate=args.rate,
-        timeout_s=args.timeout,
+        timeout_s=args.timeout if args.timeout is not None else (3600.0 if args.images else 300.0),
         ideal=args.ideal,
         keep_dir=Path(args.keep) if args.keep else None,
+        images=args.images,
+        detector_model=Path(args.detector_model) if args.detector_model else None,
+        detector_layout=args.detector_layout,
     )
 
 
@@ -540,7 +543,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=_positive_seconds, default=20.0, help="time acceleration, > 0 (default 20x)"
     )
     demo.add_argument(
-        "--timeout", type=_positive_seconds, default=300.0, help="give up after this many seconds"
+        "--timeout",
+        type=_positive_seconds,
+        help="give up after this many seconds (default 300; 3600 with --images)",
     )
     demo.add_argument(
         "--ideal",
@@ -551,6 +556,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--keep",
         metavar="DIR",
         help="keep the daemon's recordings, results and reports in DIR (new or empty), plus simulation.mcap",
+    )
+    demo.add_argument(
+        "--images",
+        action="store_true",
+        help="the cameras send rendered images (foxglove.CompressedImage) and the daemon's ONNX detector "
+        "makes the boxes; replayed at the detector's pace (minutes); without --detector-model, the "
+        "simulator's colour-key model on key-painted vehicles",
+    )
+    demo.add_argument(
+        "--detector-model",
+        metavar="ONNX",
+        help="with --images: your detector (an ONNX export with COCO classes, fixed input size) on images "
+        "of ordinarily painted vehicles",
+    )
+    demo.add_argument(
+        "--detector-layout",
+        choices=["yolov5", "yolov8", "yolox"],
+        default="yolov8",
+        help="output layout of --detector-model (default yolov8)",
     )
     demo.set_defaults(func=_cmd_demo)
 

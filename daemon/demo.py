@@ -9,6 +9,9 @@ The scene runs in the simulator's real world (vehicle shapes, a biased detector,
 CAM V2X) unless `ideal` asks for the first simulator's world. The demo holds the product to its promise:
 every published calibration right (camera within MAX_POSITION_ERROR_M and MAX_ROTATION_ERROR_DEG of the
 truth), every other camera refused with reasons; in the ideal world every camera must be calibrated.
+
+With `images` the cameras send rendered images instead of boxes and the daemon's ONNX detector finds the
+vehicles (daemon.demo_images): the simulator's colour-key model, or an operator's model.
 """
 
 from __future__ import annotations
@@ -24,8 +27,18 @@ import numpy as np
 import zenoh
 
 from daemon.bus import client_config, free_loopback_port, query
-from daemon.clock import ScaledClock
-from daemon.keys import calibration_key, detections_key, status_key, v2x_key
+from daemon.clock import Clock, ScaledClock
+from daemon.demo_images import (
+    DetectorAnswers,
+    ImageReplay,
+    ImageSetup,
+    Layout,
+    RenderedImages,
+    ReplayClock,
+    image_setup,
+    publish_with_images,
+)
+from daemon.keys import calibration_key, detections_key, health_key, image_key, status_key, v2x_key
 from daemon.main import Daemon, DaemonEvent
 from daemon.recording import write_simulation_mcap
 from pipeline.camera import camera_center
@@ -43,7 +56,8 @@ from schemas.config import (
     TriggerConfig,
     ZenohConfig,
 )
-from schemas.results import CalibrationResult, CalibrationStatus
+from schemas.results import CalibrationResult, CalibrationStatus, Health
+from sim.presets import ScenarioConfig
 from sim.simulate import SimulationResult, simulate
 
 # A published calibration is right when the camera is within these of the truth: the benchmark's
@@ -67,8 +81,11 @@ class BusMessage:
     payload: bytes
 
 
-def demo_config(sim: SimulationResult, state_dir: Path, port: int) -> DaemonConfig:
-    """The config an installer would write for the simulated site: approximate positions, coverage circles."""
+def demo_config(
+    sim: SimulationResult, state_dir: Path, port: int, images: ImageSetup | None = None
+) -> DaemonConfig:
+    """The config an installer would write for the simulated site: approximate positions, coverage circles;
+    with `images`, every camera's detector and label map."""
     frame = UtmFrame(sim.origin.crs)
     origin = np.array([sim.origin.x, sim.origin.y, sim.origin.z])
     cameras = []
@@ -85,6 +102,8 @@ def demo_config(sim: SimulationResult, state_dir: Path, port: int) -> DaemonConf
                 intrinsics=camera.intrinsics,
                 position=GeoPoint(lat=float(lat[0]), lon=float(lon[0])),
                 coverage_radius_m=COVERAGE_RADIUS_M,
+                labels=images.labels if images else None,
+                detector=images.detector if images else None,
             )
         )
     return DaemonConfig(
@@ -99,14 +118,20 @@ def demo_config(sim: SimulationResult, state_dir: Path, port: int) -> DaemonConf
     )
 
 
-def simulation_messages(sim: SimulationResult) -> list[BusMessage]:
+def simulation_messages(sim: SimulationResult, images: bool = False) -> list[BusMessage]:
+    """Every camera's detections (`images`: an empty placeholder on the image key per frame instead, the
+    renderer fills it in) and the V2X, by stamp (ties by key, the order the renderer sends images in)."""
     messages = [
-        BusMessage(frame.stamp_ns, detections_key(sim.rsu_id, camera_id), frame.model_dump_json().encode())
+        BusMessage(frame.stamp_ns, image_key(sim.rsu_id, camera_id), b"")
+        if images
+        else BusMessage(
+            frame.stamp_ns, detections_key(sim.rsu_id, camera_id), frame.model_dump_json().encode()
+        )
         for camera_id, frames in sim.detections.items()
         for frame in frames
     ]
     messages += [BusMessage(m.stamp_ns, v2x_key(m.station_id), m.model_dump_json().encode()) for m in sim.v2x]
-    messages.sort(key=lambda m: m.stamp_ns)
+    messages.sort(key=lambda m: (m.stamp_ns, m.key))
     return messages
 
 
@@ -132,7 +157,7 @@ def publish_messages(
 
 
 def run_demo(
-    preset: str = "sil-west",
+    preset: str | ScenarioConfig = "sil-west",
     seed: int = 0,
     rate: float = 20.0,
     timeout_s: float = 300.0,
@@ -141,13 +166,22 @@ def run_demo(
     out: Printer = print,
     ideal: bool = False,
     keep_dir: Path | None = None,
+    images: bool = False,
+    detector_model: Path | None = None,
+    detector_layout: Layout = "yolov8",
 ) -> int:
     """Run the demo; 0 when the product kept its promise (module docstring), 1 otherwise.
+
+    `images`: the cameras send rendered images and the daemon's detector makes the boxes, with
+    `detector_model` (an ONNX file, `detector_layout`, COCO classes) or the simulator's colour-key model.
 
     `keep_dir` (a new or empty directory) keeps the daemon's state there (recordings/*.mcap with their
     Foxglove views, cameras/*/history with results and reports) and adds simulation.mcap, the simulator's
     own recording with the calibration vehicle's boxes marked from the truth and the results read back.
     """
+    if detector_model is not None and not images:
+        raise InputError("--detector-model", "runs on images: add --images")
+    setup = image_setup(detector_model, detector_layout) if images else None
     if keep_dir is not None:
         keep_dir = Path(keep_dir)
         if keep_dir.exists() and (not keep_dir.is_dir() or any(keep_dir.iterdir())):
@@ -158,15 +192,28 @@ def run_demo(
         state_dir = keep_dir
     started = time.monotonic()
     world = "the ideal world" if ideal else "the real world"
-    out(f"rsucal demo: simulating preset {preset} (seed {seed}) in {world} ...")
+    name = preset if isinstance(preset, str) else preset.name
+    out(f"rsucal demo: simulating preset {name} (seed {seed}) in {world} ...")
     sim = simulate(preset, seed, ideal=ideal)
-    messages = simulation_messages(sim)
+    messages = simulation_messages(sim, images=setup is not None)
     duration_s = (messages[-1].stamp_ns - messages[0].stamp_ns) / 1e9
+    pace = (
+        f"replayed as fast as the daemon's detector answers, then {rate:g}x faster"
+        if setup
+        else f"replayed {rate:g}x faster"
+    )
     out(
         f"  {len(sim.cameras)} camera(s) on RSU {sim.rsu_id}, calibration vehicle station {sim.station_id}, "
-        f"{len(messages)} messages over {duration_s:.0f} s, replayed {rate:g}x faster"
+        f"{len(messages)} messages over {duration_s:.0f} s, {pace}"
     )
-    clock = ScaledClock(messages[0].stamp_ns - 1_000_000_000, rate)
+    if setup is not None:
+        out(
+            "  images: every frame of every camera rendered (JPEG, foxglove.CompressedImage on "
+            f"rsu/{sim.rsu_id}/camera/{{cam}}/image); the boxes by the daemon's ONNX detector, "
+            f"{setup.description}"
+        )
+    start_ns = messages[0].stamp_ns - 1_000_000_000
+    clock: ScaledClock | ReplayClock = ReplayClock(start_ns, rate) if setup else ScaledClock(start_ns, rate)
     t0_ns = clock.start_ns
 
     def on_event(event: DaemonEvent) -> None:
@@ -175,24 +222,39 @@ def run_demo(
     with tempfile.TemporaryDirectory(prefix="rsucal-demo-") as tmp:
         state = state_dir or Path(tmp) / "state"
         endpoint_port = port or free_loopback_port()
-        config = demo_config(sim, state, endpoint_port)
+        config = demo_config(sim, state, endpoint_port, setup)
         endpoint = config.zenoh.listen[0]
         out(f"  daemon: peer on {endpoint}, state in {state}")
         daemon = Daemon(config, clock=clock, on_event=on_event)
         stop = threading.Event()
         publisher_session: zenoh.Session | None = None
         client: zenoh.Session | None = None
+        rendered: RenderedImages | None = None
+        image_replay = ImageReplay()
         try:
+            if setup is not None:  # the renderer simulates on its own while the daemon starts
+                rendered = RenderedImages(preset, seed, ideal, setup.keyed)
+                rendered.start()
             daemon.start()
             publisher_session = zenoh.open(client_config([endpoint]))
-            publisher = threading.Thread(
-                target=publish_messages,
-                args=(publisher_session, messages, clock, stop),
-                name="demo-rsu",
-                daemon=True,
-            )
-            publisher.start()
             client = zenoh.open(client_config([endpoint]))
+            if isinstance(clock, ReplayClock) and rendered is not None:
+                answers = DetectorAnswers()
+                client.declare_subscriber(detections_key(sim.rsu_id, "*"), answers.on_sample)
+                publisher = threading.Thread(
+                    target=publish_with_images,
+                    args=(publisher_session, messages, clock, stop, rendered, answers, image_replay),
+                    name="demo-rsu",
+                    daemon=True,
+                )
+            else:
+                publisher = threading.Thread(
+                    target=publish_messages,
+                    args=(publisher_session, messages, clock, stop),
+                    name="demo-rsu",
+                    daemon=True,
+                )
+            publisher.start()
             # Once the replay is over and the daemon had time to see the vehicle leave and to wait the
             # quiet period, a camera short of traversals can never be calibrated: stop there.
             settled_ns = messages[-1].stamp_ns + int(
@@ -203,18 +265,50 @@ def run_demo(
             stop.set()
             publisher.join(timeout=5.0)
             results = _read_calibrations(client, config)
+            health = _health(client, config) if setup else None
             if keep_dir is not None:
                 _wait_for_reports(statuses, started + timeout_s)
         finally:
             stop.set()
+            if rendered is not None:
+                rendered.close()
             for session in (client, publisher_session):
                 if session is not None:
                     session.close()  # type: ignore[no-untyped-call]
             daemon.stop()
+        if setup is not None:
+            _report_images(config, health, image_replay, out)
         code = _report(sim, config, statuses, results, time.monotonic() - started, out)
+        if image_replay.error is not None:
+            code = 1
         if keep_dir is not None:
             _describe_kept(sim, keep_dir, results, out)
         return code
+
+
+def _health(client: zenoh.Session, config: DaemonConfig) -> Health | None:
+    answers = query(client, health_key(config.rsu_id), timeout_s=2.0)
+    return decode_json(Health, answers[0][1]) if answers else None
+
+
+def _report_images(config: DaemonConfig, health: Health | None, replay: ImageReplay, out: Printer) -> None:
+    """The image path's counters as the daemon's health reports them over Zenoh."""
+    out("")
+    out("image path (rsu/{rsu}/health counters: images in, DetectionFrames out, dropped while busy):")
+    if replay.error is not None:
+        out(f"  FAIL: {replay.error}")
+    counters = health.counters if health is not None else {}
+    for camera in config.cameras:
+        name = camera.camera_id
+        received, detected, dropped = (
+            counters.get(f"images.{name}.{what}", 0) for what in ("received", "detected", "dropped")
+        )
+        out(f"  {name:<16} images {received:>6}  detector frames {detected:>6}  dropped {dropped:>4}")
+    rejected = {k: v for k, v in counters.items() if k.startswith("images.rejected.") and v}
+    out(
+        f"  {replay.images} images put, {replay.unanswered} not answered within the wait"
+        + (f"; rejected: {rejected}" if rejected else "")
+    )
 
 
 def _wait_for_reports(statuses: dict[str, CalibrationStatus], deadline: float) -> None:
@@ -256,7 +350,7 @@ class _Replay:
     """The publisher thread and the scaled time after which the daemon has seen everything it will see."""
 
     thread: threading.Thread
-    clock: ScaledClock
+    clock: Clock
     settled_ns: int
 
     def is_settled(self) -> bool:

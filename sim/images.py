@@ -6,6 +6,12 @@ stamp is the detection frame's (exposure plus the camera's latency, as a camera 
 images). Bodies are drawn far to near and, within a body, face by face far to near (painter's algorithm),
 lit by a fixed sun; occluders take part in the same order. The images feed foxglove.CompressedImage
 channels (`rsucal simulate --images`), so a recording shows the scene and the image path can be tried.
+
+`keyed=True` paints every vehicle (the calibration vehicle like any other) and its wheels in one of four
+key colours (KEY_PAINTS: saturated red, blue, magenta, green, shaded like any paint) that nothing else in
+the scene has, in turn by vehicle number (vehicles that follow each other mostly differ):
+sim.key_detector's ONNX model finds vehicles by those colours, so `rsucal demo --images` can run the
+daemon's image path without a trained detector (none ships with rsucal).
 """
 
 from __future__ import annotations
@@ -37,17 +43,33 @@ PAINTS = (
     (150, 180, 200),
 )
 CALIBRATION_PAINT = (20, 140, 250)  # the calibration vehicle: orange, like its boxes in the recordings
+# Key colours (BGR) of `keyed` images, sim.key_detector's classes 0-3: green near zero in the first three, red
+# and blue in the last, which no sky, ground, road, marking or occluder colour of sim.preview comes close to;
+# wheels get the body's key at KEY_WHEEL_SHADE.
+KEY_PAINTS = ((0, 0, 255), (255, 0, 0), (255, 0, 255), (0, 255, 0))
+KEY_WHEEL_SHADE = 0.5
 _SUB = 4  # cv2 fixed-point drawing: 4 fractional bits
 
 
-def _paint(vehicle: int) -> tuple[int, int, int]:
+def _paint(vehicle: int, keyed: bool = False) -> tuple[int, int, int]:
+    if keyed:  # the same rule for every vehicle: the key tells nothing about which is the calibration one
+        return KEY_PAINTS[vehicle % len(KEY_PAINTS)]
     if vehicle == 0:
         return CALIBRATION_PAINT
     return PAINTS[zlib.crc32(vehicle.to_bytes(4, "little")) % len(PAINTS)]
 
 
+def _shaded(colour: tuple[int, int, int], factor: float) -> tuple[int, int, int]:
+    return round(colour[0] * factor), round(colour[1] * factor), round(colour[2] * factor)
+
+
 def _draw_body(
-    image: np.ndarray, view: _View, shape: BodyShape, pose: FloatArray, colour: tuple[int, int, int]
+    image: np.ndarray,
+    view: _View,
+    shape: BodyShape,
+    pose: FloatArray,
+    colour: tuple[int, int, int],
+    wheel_colour: tuple[int, int, int] = WHEEL_BGR,
 ) -> None:
     """One vehicle's mesh, pose (6,) of its footprint centre; nothing if any vertex is behind the camera."""
     anchor = np.array([shape.length_m / 2.0, shape.width_m / 2.0, 0.0])
@@ -74,15 +96,16 @@ def _draw_body(
     for f in np.argsort(-depth):
         if not facing[f] or length[f] <= 1e-12:
             continue
-        base = WHEEL_BGR if wheel[f] else colour
+        base = wheel_colour if wheel[f] else colour
         shade = tuple(int(min(255.0, c * light[f])) for c in base)
         cv2.fillConvexPoly(image, fixed[faces[f]], shade, cv2.LINE_AA, _SUB)
 
 
 def render_images(
-    result: SimulationResult, camera_id: str, every: int = 1
+    result: SimulationResult, camera_id: str, every: int = 1, keyed: bool = False
 ) -> Iterator[tuple[int, np.ndarray]]:
-    """(detection stamp_ns, BGR uint8 image) of every `every`-th frame of one camera, first frame first."""
+    """(detection stamp_ns, BGR uint8 image) of every `every`-th frame of one camera, first frame first;
+    `keyed`: vehicles in KEY_PAINTS (module docstring)."""
     if every < 1:
         raise ValueError(f"every = {every} must be at least 1")
     camera = next(c for c in result.cameras if c.camera_id == camera_id)
@@ -114,5 +137,7 @@ def render_images(
                 _draw_occluders(image, view, [occluders[item]])
             else:
                 vehicle = int(vehicles[item])
-                _draw_body(image, view, result.bodies[vehicle], poses[item], _paint(vehicle))
+                paint = _paint(vehicle, keyed)
+                wheels = _shaded(paint, KEY_WHEEL_SHADE) if keyed else WHEEL_BGR
+                _draw_body(image, view, result.bodies[vehicle], poses[item], paint, wheels)
         yield detection.stamp_ns, image
