@@ -172,13 +172,14 @@ def test_correlated_noise_is_not_reported_as_independent():
 
 
 def test_a_traversal_that_disagrees_is_named():
+    """One drive-past seen through a clock 0.15 s off the others' (a detector that stalled, another
+    vehicle's track): the others predict the boxes they leave out worse than noise and uncertainty allow."""
     trajectory, tracks = _scene(noise_px=0.5, seed=2)
     R0, t0 = _start(2)
-    shifted = tracks[1]
-    # The second drive-past's boxes are another vehicle's: 25 px to the right, 10 px lower.
-    tracks[1] = MatchedTrack(
-        shifted.track_id, shifted.stamps, shifted.boxes + np.array([25.0, 10.0, 25.0, 10.0]), shifted.poses
-    )
+    odd = tracks[1]
+    x = np.zeros(N_PARAMS)
+    x[_DELTA], x[_SHAPE], x[_BIAS] = SHIFT_TRUE_S + 0.15, SHAPE_TRUE, BIAS_TRUE
+    tracks[1] = MatchedTrack(odd.track_id, odd.stamps, _boxes(trajectory, odd.stamps, x), odd.poses)
     params = ModelParams()
     fit, used = fit_trimmed(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
     check = check_traversals(fit, used, trajectory, CAMERA, VEHICLE, params)
@@ -189,8 +190,8 @@ def test_a_traversal_that_disagrees_is_named():
 
 
 def test_consistent_traversals_agree():
-    trajectory, tracks = _scene(noise_px=0.5, seed=4)
-    R0, t0 = _start(4)
+    trajectory, tracks = _scene(noise_px=0.5, seed=2)
+    R0, t0 = _start(2)
     params = ModelParams()
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
     check = check_traversals(fit, tracks, trajectory, CAMERA, VEHICLE, params)
