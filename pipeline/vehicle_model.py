@@ -5,7 +5,7 @@ vehicle's L x W x H cuboid, on the clock the caller assumed. Real detectors do n
 silhouette is smaller than its cuboid (rounded corners, a cabin narrower and shorter than the body, ground
 clearance under the bumpers), detectors have their own annotation convention (boxes a few per cent tight or
 loose, edges a few pixels in or out) and stamp a frame some unknown 40-200 ms after its exposure. Fitting the
-cuboid on such boxes moved simulated cameras 0.6-0.8 m even with the right tracks and the latency known, and
+cuboid on such boxes moved simulated cameras 0.58-0.84 m even with the right tracks and the latency known, and
 an unknown 180 ms latency alone moved them 3 m (tools: bench.accuracy, the realistic world).
 
 So the pose is fitted jointly with the unknowns it would otherwise absorb, each with a weak prior:
@@ -217,15 +217,7 @@ def fit_vehicle_model(
     sampler = PoseSampler(trajectory)
     if not tracks or sum(len(t.boxes) for t in tracks) == 0:
         raise DegenerateGeometry("joint fit: no boxes")
-    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
-    stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in tracks])
-    data = _Data(
-        boxes=boxes,
-        t_s=sampler.seconds(stamps),
-        track_ids=np.concatenate([np.full(len(t.boxes), t.track_id, dtype=np.int64) for t in tracks]),
-        stamps=stamps,
-        used=~_clipped_edges(boxes, camera, params.border_margin_px),
-    )
+    data = _data_of(tracks, sampler, camera, params)
     if int(data.used.sum()) < 2 * N_PARAMS:
         raise DegenerateGeometry(
             f"joint fit: {int(data.used.sum())} unclipped box edges, need >= {2 * N_PARAMS}"
@@ -703,21 +695,8 @@ def _holdout_statistic(
     the detector noise and model misfit the other traversals show (per edge and box size, correlation
     included); residuals beyond 3 of their own std are clipped there (outlier boxes). Also returns the
     median |r|."""
-    sampler = PoseSampler(trajectory)
-    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in held_out])
-    stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in held_out])
-    data = _Data(
-        boxes=boxes,
-        t_s=sampler.seconds(stamps),
-        track_ids=np.zeros(len(boxes), dtype=np.int64),
-        stamps=stamps,
-        used=~_clipped_edges(boxes, camera, params.border_margin_px),
-    )
-    x = np.zeros(N_PARAMS)
-    x[_DELTA], x[_SHAPE], x[_BIAS] = loo.time_shift_s, loo.shape, loo.bias
-    model = _Model(
-        data, sampler, loo.R_cam_from_local, loo.camera_center, camera, vehicle, params, x, params.prior_std()
-    )
+    model, x = _model_of(loo, held_out, trajectory, camera, vehicle, params)
+    boxes = model.data.boxes
     model.data_scale = np.ones(model.data_rows)
     r = model.residuals(x)[: model.data_rows]
     J = model.jacobian(x)[: model.data_rows]
@@ -776,23 +755,45 @@ def predicted_residuals(
     params: ModelParams,
 ) -> FloatArray:
     """|model edge - detected edge| (N, 4) px of the fitted model on any boxes (NaN on clipped edges)."""
-    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
-    stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in tracks])
+    model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
+    raw, _, _, _ = model.raw(x)
+    data = model.data
+    return np.where(data.used, np.abs(model.biased(raw, fit.bias) - data.boxes), np.nan)
+
+
+def _model_of(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> tuple[_Model, FloatArray]:
+    """The model of a fit (its pose, shift, template and convention) on other boxes, and its parameter
+    vector there (pose part zero: the model is built around the fit's pose)."""
     sampler = PoseSampler(trajectory)
-    data = _Data(
-        boxes=boxes,
-        t_s=sampler.seconds(stamps),
-        track_ids=np.zeros(len(boxes), dtype=np.int64),
-        stamps=stamps,
-        used=~_clipped_edges(boxes, camera, params.border_margin_px),
-    )
+    data = _data_of(tracks, sampler, camera, params)
     x = np.zeros(N_PARAMS)
     x[_DELTA], x[_SHAPE], x[_BIAS] = fit.time_shift_s, fit.shape, fit.bias
     model = _Model(
         data, sampler, fit.R_cam_from_local, fit.camera_center, camera, vehicle, params, x, params.prior_std()
     )
-    raw, _, _, _ = model.raw(x)
-    return np.where(data.used, np.abs(model.biased(raw, fit.bias) - boxes), np.nan)
+    return model, x
+
+
+def _data_of(
+    tracks: Sequence[MatchedTrack], sampler: PoseSampler, camera: CameraModel, params: ModelParams
+) -> _Data:
+    """The tracks' boxes stacked, with their times on the sampler's clock and the unclipped edges."""
+    boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
+    stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in tracks])
+    return _Data(
+        boxes=boxes,
+        t_s=sampler.seconds(stamps),
+        track_ids=np.concatenate([np.full(len(t.boxes), t.track_id, dtype=np.int64) for t in tracks]),
+        stamps=stamps,
+        used=~_clipped_edges(boxes, camera, params.border_margin_px),
+    )
 
 
 def model_box_error(
