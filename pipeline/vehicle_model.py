@@ -11,22 +11,26 @@ an unknown 180 ms latency alone moved them 3 m (tools: bench.accuracy, the reali
 So the pose is fitted jointly with the unknowns it would otherwise absorb, each with a weak prior:
 - time shift `delta` (s): the box stamped t shows the vehicle at trajectory time t - delta; observable
   because the vehicle moves at varying speed and direction across the drive-pasts;
-- the body as a convex template of 12 points in the vehicle box frame (docs/method.md): the footprint
-  rectangle lifted to a clearance height `z_low`, the same rectangle at a shoulder height `z_mid`, and a
-  roof rectangle at the profile's height H spanning [x_front, x_back] along the body and inset `y_in` from
-  each side. The profile's L, W, H stay the vehicle's data-sheet extents; the template only says which part
-  of that box the silhouette fills. It starts as the cuboid (z_low 0, z_mid H, roof = whole top);
-- the detector's convention: a scale `s` of every box about its centre and a constant offset of each edge
-  (px), the same for all boxes of the camera.
-Box size changes tenfold along a drive-past, so metric shape and pixel bias separate; what the data cannot
-separate from the pose shows up in the pose's marginal covariance, which is the block of the full inverse,
-nuisance parameters included (their priors keep it finite).
+- the body as a template of 12 points in the vehicle box frame (docs/method.md): the body's lower rectangle
+  (full L x W) at a height `z_low`, the wheels' contact rectangle on the road (in from the ends by an
+  overhang, from the sides by an inset) and a roof rectangle at the profile's height H spanning
+  [x_back, x_front] along the body, inset from each side. The profile's L, W, H stay the vehicle's
+  data-sheet extents; the template only says which part of that box the silhouette fills. It starts as,
+  and its prior is centred on, the cuboid;
+- the detector's convention: a scale of every box about its centre, a shift and a growth in x and y (px),
+  the same for all boxes of the camera. A shift of every box looks like a turn of the camera: its prior
+  (2 px) is what bounds it, and it enters the rotation's std.
+Box size changes tenfold along a drive-past, so metric shape and pixel convention separate; what the data
+cannot separate from the pose shows up in the pose's marginal covariance, the block of the full inverse with
+the nuisance parameters included (their priors keep it finite). Whether the template, the convention and
+the time shift are needed at all is decided in calibrate._final_fit (cross-validation, significance).
 
 Uncertainty: detector errors are correlated over consecutive frames (a box edge stays a few pixels off for
 a second) and GNSS errors drift, so independent-residual least squares overstates the information many times.
-The covariance is the cluster-robust sandwich A^-1 B A^-1 with A the (robust-weighted) normal matrix plus the
-priors' information and B the sum over clusters (one per track and `cluster_s` of time) of the outer
-products of their score sums (plus the priors' information), never below the classical sigma^2 A^-1.
+Each residual is weighted by its own std (detector noise plus a per-edge share of the box height the template
+misses) times the variance inflation of the residuals' frame-to-frame correlation; the covariance is the
+cluster-robust sandwich A^-1 B A^-1 (clusters: one track, `cluster_s` of time), never below A^-1, plus the
+common GNSS offset; check_traversals then raises it to the scatter of the traversals left out in turn.
 """
 
 from __future__ import annotations
