@@ -206,3 +206,18 @@ def match_tracks(
             )
         )
     return matched
+
+
+def select_rows(tracks: Sequence[MatchedTrack], keep: Mask) -> list[MatchedTrack]:
+    """The tracks restricted to the rows where `keep` (all tracks' rows stacked, in order) is True; a track
+    left with no row is dropped."""
+    kept: list[MatchedTrack] = []
+    start = 0
+    for track in tracks:
+        rows = keep[start : start + len(track.boxes)]
+        start += len(track.boxes)
+        if rows.any():
+            kept.append(
+                MatchedTrack(track.track_id, track.stamps[rows], track.boxes[rows], track.poses[rows])
+            )
+    return kept

@@ -54,13 +54,12 @@ def path_pitch(stamps: np.ndarray, positions: FloatArray, window_m: float, max_g
         lo = np.searchsorted(s, s - window_m / 2.0, side="left")
         hi = np.searchsorted(s, s + window_m / 2.0, side="right")
         # Windowed least-squares slope from prefix sums: slope = cov(s, z) / var(s) over [lo, hi).
-        c = np.concatenate([[0.0], np.cumsum(np.ones_like(s))])
         cs = np.concatenate([[0.0], np.cumsum(s)])
         cz = np.concatenate([[0.0], np.cumsum(z)])
         css = np.concatenate([[0.0], np.cumsum(s * s)])
         csz = np.concatenate([[0.0], np.cumsum(s * z)])
         czz = np.concatenate([[0.0], np.cumsum(z * z)])
-        n = c[hi] - c[lo]
+        n = (hi - lo).astype(np.float64)
         sum_s, sum_z = cs[hi] - cs[lo], cz[hi] - cz[lo]
         var = (css[hi] - css[lo]) - sum_s**2 / np.maximum(n, 1.0)
         cov = (csz[hi] - csz[lo]) - sum_s * sum_z / np.maximum(n, 1.0)

@@ -34,6 +34,7 @@ from pipeline.association import (
     Trajectory,
     make_trajectory,
     match_tracks,
+    select_rows,
 )
 from pipeline.attitude import with_path_pitch
 from pipeline.camera import CameraModel, quaternion_wxyz_from_rotation, rotation_angle_rad
@@ -63,6 +64,7 @@ from pipeline.vehicle_model import (
     fit_trimmed,
     fit_vehicle_model,
     holdout_error,
+    leave_one_out,
     model_box_error,
     model_footprints,
     unbiased_boxes,
@@ -643,13 +645,7 @@ def _extend(
         misfit = misfit[np.isfinite(misfit)]
         if len(misfit) >= 5 and float(np.median(misfit)) <= limit:
             extra.append((float(np.median(misfit)), track))
-    added: list[MatchedTrack] = []
-    for _, track in sorted(extra, key=lambda pair: pair[0]):
-        span = (int(track.stamps[0]), int(track.stamps[-1]))
-        if any(span[0] <= end and start <= span[1] for start, end in spans):
-            continue  # seen together with a track of the vehicle: another vehicle
-        added.append(track)
-        spans.append(span)
+    added = _apart_in_time(extra, spans)
     if not added:
         return chosen
     union = sorted([*members, *added], key=lambda m: int(m.stamps[0]))
@@ -741,17 +737,7 @@ def _trim(
     misfit = _box_misfits(R, t, members, camera, vehicle, refinement)
     finite = misfit[np.isfinite(misfit)]
     threshold = max(floor, 3.0 * float(np.median(finite))) if len(finite) else floor
-    keep = np.isfinite(misfit) & (misfit <= threshold)
-    trimmed: list[MatchedTrack] = []
-    start = 0
-    for track in members:
-        rows = keep[start : start + len(track.boxes)]
-        start += len(track.boxes)
-        if rows.any():
-            trimmed.append(
-                MatchedTrack(track.track_id, track.stamps[rows], track.boxes[rows], track.poses[rows])
-            )
-    return trimmed
+    return select_rows(members, np.isfinite(misfit) & (misfit <= threshold))
 
 
 def _box_misfits(
@@ -959,27 +945,25 @@ def _final_fit(
             fit = fit_vehicle_model(
                 fit.R_cam_from_local, fit.t_cam_from_local, used, trajectory, camera, vehicle, model_params
             )
+    plain = cuboid_params(model_params)
     try:
         cuboid = fit_vehicle_model(
-            fit.R_cam_from_local,
-            fit.t_cam_from_local,
-            used,
-            trajectory,
-            camera,
-            vehicle,
-            cuboid_params(model_params),
+            fit.R_cam_from_local, fit.t_cam_from_local, used, trajectory, camera, vehicle, plain
         )
     except DegenerateGeometry:
         cuboid = None
     # Chosen by cross-validation over the traversals: the template and detector convention are kept only
     # when they predict each left-out drive-past clearly better than the cuboid does (a chi-square test on
     # the residuals let them fit the first simulator's per-traversal pose drift and lose 0.1-0.3 m).
+    left_out = leave_one_out(fit, used, trajectory, camera, vehicle, model_params)
     if cuboid is not None:
-        full_error = holdout_error(fit, used, trajectory, camera, vehicle, model_params)
-        cuboid_error = holdout_error(cuboid, used, trajectory, camera, vehicle, cuboid_params(model_params))
+        cuboid_left_out = leave_one_out(cuboid, used, trajectory, camera, vehicle, plain)
+        full_error = holdout_error(left_out, trajectory, camera, vehicle, model_params)
+        cuboid_error = holdout_error(cuboid_left_out, trajectory, camera, vehicle, plain)
         if not full_error < params.template_gain * cuboid_error:
-            fit, model_params = cuboid, cuboid_params(model_params)
-    check = check_traversals(fit, used, trajectory, camera, vehicle, model_params)
+            fit, model_params, left_out = cuboid, plain, cuboid_left_out
+    # The left-out fits of the chosen class serve the traversal check too.
+    check = check_traversals(left_out, trajectory, camera, vehicle, model_params)
     boxes = unbiased_boxes(np.concatenate([t.boxes for t in used]), fit.bias)
     footprints = model_footprints(fit, used, trajectory, vehicle)
     summary = delta_p(boxes, footprints, fit.R_cam_from_local, fit.t_cam_from_local, camera).summary()
@@ -1024,13 +1008,22 @@ def _recognised(
         misfit = model_box_error(fit, [track], trajectory, camera, vehicle, params.model)
         if misfit <= limit:
             scored.append((misfit, track))
+    return _apart_in_time(scored, spans)
+
+
+def _apart_in_time(
+    scored: Sequence[tuple[float, MatchedTrack]], spans: Sequence[tuple[int, int]]
+) -> list[MatchedTrack]:
+    """Best-scored first, the tracks that overlap in time neither `spans` (the vehicle's tracks) nor each
+    other: a track seen together with one of the vehicle's is another vehicle."""
+    taken = list(spans)
     added: list[MatchedTrack] = []
     for _, track in sorted(scored, key=lambda pair: pair[0]):
         span = (int(track.stamps[0]), int(track.stamps[-1]))
-        if any(span[0] <= end and start <= span[1] for start, end in spans):
+        if any(span[0] <= end and start <= span[1] for start, end in taken):
             continue
         added.append(track)
-        spans.append(span)
+        taken.append(span)
     return added
 
 

@@ -43,8 +43,8 @@ import numpy as np
 from scipy.optimize import least_squares, nnls
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, Stamps, Vec3
-from pipeline.association import MatchedTrack, Trajectory
-from pipeline.camera import CameraModel, camera_center, rotation_from_ypr
+from pipeline.association import MatchedTrack, Trajectory, select_rows
+from pipeline.camera import CameraModel, camera_center, rvec_from_rotation
 from pipeline.errors import DegenerateGeometry
 from pipeline.refinement import (
     _camera_points,
@@ -55,6 +55,7 @@ from pipeline.refinement import (
     _project_jacobian,
     _robust_weights,
 )
+from pipeline.vehicle import body_points_to_world
 from schemas.common import VehicleProfile
 
 _POSE, _DELTA, _SHAPE, _BIAS = slice(0, 6), 6, slice(7, 13), slice(13, 18)
@@ -282,6 +283,7 @@ class _Model:
         self.mean = mean
         self.has_prior = np.isfinite(prior_std)
         self.prior_weight = np.where(self.has_prior, 1.0 / np.where(self.has_prior, prior_std, 1.0), 0.0)
+        self.prior_jacobian = np.diag(self.prior_weight)[self.has_prior]  # constant: the priors are linear
         self.box_index, self.edge_index = np.nonzero(data.used)
         self._cache: dict[str, FloatArray] = {}
         self.data_scale = np.ones(len(self.box_index))  # px per unit, per data row
@@ -328,9 +330,7 @@ class _Model:
     def raw(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation]:
         R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
         poses = self.sampler.at(self.data.t_s - x[_DELTA])
-        points = template_points(x[_SHAPE], self.vehicle) - np.asarray(self.vehicle.imu_offset)
-        Rv = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
-        world = np.einsum("nij,kj->nki", Rv, points) + poses[:, None, :3]
+        world = body_points_to_world(poses, template_points(x[_SHAPE], self.vehicle), self.vehicle)
         n, k = world.shape[:2]
         cam = _camera_points(world.reshape(-1, 3), R, C)
         uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
@@ -392,7 +392,7 @@ class _Model:
         J[:, _BIAS.start] = ((raw - raw[:, opposite]) / 2.0)[bi, ei]
         J[:, _BIAS.start + 1 :] = _OFFSET_FROM_BIAS[ei]
         prior_r = ((x - self.mean) * self.prior_weight)[self.has_prior]
-        prior_J = np.diag(self.prior_weight)[self.has_prior]
+        prior_J = self.prior_jacobian
         self._cache = {
             "x": x.copy(),
             "r": np.concatenate([residual / self.data_scale, prior_r]),
@@ -557,17 +557,7 @@ def _trim_by(fit: ModelFit, tracks: Sequence[MatchedTrack], floor: float) -> lis
     misfit[finite_rows] = np.nanmax(np.abs(residuals[finite_rows]), axis=1) / heights[finite_rows]
     finite = misfit[np.isfinite(misfit)]
     threshold = max(floor, 3.0 * float(np.median(finite))) if len(finite) else floor
-    keep = misfit <= threshold
-    kept: list[MatchedTrack] = []
-    start = 0
-    for track in tracks:
-        rows = keep[start : start + len(track.boxes)]
-        start += len(track.boxes)
-        if rows.any():
-            kept.append(
-                MatchedTrack(track.track_id, track.stamps[rows], track.boxes[rows], track.poses[rows])
-            )
-    return kept
+    return select_rows(tracks, misfit <= threshold)
 
 
 def unbiased_boxes(boxes: Boxes, bias: FloatArray) -> Boxes:
@@ -590,9 +580,7 @@ def model_footprints(
     sampler = PoseSampler(trajectory)
     stamps = np.concatenate([t.stamps for t in tracks])
     poses = sampler.at(sampler.seconds(stamps) - fit.time_shift_s)
-    points = fit.footprint_body_frame(vehicle) - np.asarray(vehicle.imu_offset)
-    Rv = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
-    return np.asarray(np.einsum("nij,kj->nki", Rv, points) + poses[:, None, :3], dtype=np.float64)
+    return body_points_to_world(poses, fit.footprint_body_frame(vehicle), vehicle)
 
 
 @dataclass(frozen=True, slots=True)
@@ -612,7 +600,19 @@ class TraversalCheck:
     disagreeing: str
 
 
-def check_traversals(
+@dataclass(frozen=True, slots=True)
+class LeftOut:
+    """The fits of a model class with each traversal left out in turn, from one full fit.
+
+    clusters: the traversals (tracks; a new one after `gap_s` without the vehicle's track); fits[k]: the
+    fit without clusters[k], or the reason it could not be made."""
+
+    full: ModelFit
+    clusters: tuple[tuple[MatchedTrack, ...], ...]
+    fits: tuple[ModelFit | str, ...]
+
+
+def leave_one_out(
     fit: ModelFit,
     tracks: Sequence[MatchedTrack],
     trajectory: Trajectory,
@@ -620,41 +620,58 @@ def check_traversals(
     vehicle: VehicleProfile,
     params: ModelParams,
     gap_s: float = 5.0,
-) -> TraversalCheck:
-    """Fit the model without each traversal in turn (from the full fit) and compare (see TraversalCheck)."""
-    clusters = _traversal_clusters(tracks, gap_s)
+) -> LeftOut:
+    """Fit the model class of `params` without each traversal in turn, started from `fit` (none with fewer
+    than 2 traversals). Shared by the choice of model class (holdout_error) and check_traversals."""
+    clusters = tuple(tuple(c) for c in _traversal_clusters(tracks, gap_s))
     if len(clusters) < 2:
-        return TraversalCheck(len(clusters), None, 0.0, 0.0, "")
+        return LeftOut(fit, clusters, ())
     quick = replace(params, max_evaluations=max(8, params.max_evaluations // 2))
-    deltas: list[FloatArray] = []
-    worst_shift = worst_angle = 0.0
-    problems: list[str] = []
+    fits: list[ModelFit | str] = []
     for index in range(len(clusters)):
         rest = [t for i, c in enumerate(clusters) if i != index for t in c]
         try:
-            loo = fit_vehicle_model(
-                fit.R_cam_from_local, fit.t_cam_from_local, rest, trajectory, camera, vehicle, quick
+            fits.append(
+                fit_vehicle_model(
+                    fit.R_cam_from_local, fit.t_cam_from_local, rest, trajectory, camera, vehicle, quick
+                )
             )
         except DegenerateGeometry as err:
-            problems.append(f"without traversal {index + 1}: {err}")
+            fits.append(str(err))
+    return LeftOut(fit, clusters, tuple(fits))
+
+
+def check_traversals(
+    left_out: LeftOut,
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> TraversalCheck:
+    """Compare the full fit with each fit that leaves a traversal out (see TraversalCheck)."""
+    fit, clusters = left_out.full, left_out.clusters
+    if len(clusters) < 2:
+        return TraversalCheck(len(clusters), None, 0.0, 0.0, "")
+    deltas: list[FloatArray] = []
+    worst_shift = worst_angle = 0.0
+    problems: list[str] = []
+    for index, loo in enumerate(left_out.fits):
+        if isinstance(loo, str):
+            problems.append(f"without traversal {index + 1}: {loo}")
             continue
         # R = R_fit expm(-[w]x) (the convention of ModelFit.covariance)
-        w = -_rotation_vector(fit.R_cam_from_local.T @ loo.R_cam_from_local)
+        w = -rvec_from_rotation(fit.R_cam_from_local.T @ loo.R_cam_from_local)
         dC = loo.camera_center - fit.camera_center
         deltas.append(np.concatenate([w, dC]))
         shift, angle = float(np.linalg.norm(dC)), math.degrees(float(np.linalg.norm(w)))
         worst_shift, worst_angle = max(worst_shift, shift), max(worst_angle, angle)
-        # Cross-validation: the left-out traversal's boxes as predicted by the others, against how well the
-        # joint fit reproduces them. A drive-past that is another vehicle's, or seen through a different
-        # clock or body, is predicted far worse than it is fitted.
-        held_out = clusters[index]
-        statistic, predicted = _holdout_statistic(fit, loo, held_out, trajectory, camera, vehicle, params)
-        # Judged on the boxes, not on the pose move against the left-out fit's own std: that std leaves out
-        # errors shared within a drive-past (GNSS drift), and moves of 2-3 of it were common between
-        # drive-pasts that agree (the first simulator's world).
-        # and only where it matters: leaving the traversal out must also move the pose by more than 3 of the
-        # joint fit's stds (the first simulator's drifting poses made traversals differ by 3-5 x the noise
-        # in pixels while moving the pose by 0.02 m / 0.06 deg).
+        # Cross-validation: the left-out traversal's boxes as predicted by the others. Judged on the boxes,
+        # not on the pose move against the left-out fit's own std (that std leaves out errors shared within
+        # a drive-past, GNSS drift, and moves of 2-3 of it were common between drive-pasts that agree), and
+        # only where it matters: leaving the traversal out must also move the pose by more than 3 of the
+        # joint fit's stds (the first simulator's drifting poses made traversals differ by 3-5 x the noise in
+        # pixels while moving the pose by 0.02 m / 0.06 deg).
+        statistic, predicted = _holdout_statistic(loo, clusters[index], trajectory, camera, vehicle, params)
         material = shift > 3.0 * fit.position_std_m or angle > 3.0 * fit.rotation_std_deg
         if statistic > params.holdout_chi2_per_residual and material:
             problems.append(
@@ -686,7 +703,6 @@ def combined_covariance(fit: ModelFit, check: TraversalCheck) -> FloatArray:
 
 
 def _holdout_statistic(
-    fit: ModelFit,
     loo: ModelFit,
     held_out: Sequence[MatchedTrack],
     trajectory: Trajectory,
@@ -739,15 +755,6 @@ def _traversal_clusters(tracks: Sequence[MatchedTrack], gap_s: float) -> list[li
         clusters[-1].append(track)
         end = max(end or 0, int(track.stamps[-1]))
     return clusters
-
-
-def _rotation_vector(R: Rotation) -> FloatArray:
-    angle = math.acos(min(1.0, max(-1.0, (float(np.trace(R)) - 1.0) / 2.0)))
-    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    norm = float(np.linalg.norm(axis))
-    if norm < 1e-12:
-        return np.zeros(3)
-    return np.asarray(axis / norm * angle, dtype=np.float64)
 
 
 def predicted_residuals(
@@ -828,30 +835,21 @@ def cuboid_params(params: ModelParams) -> ModelParams:
 
 
 def holdout_error(
-    fit: ModelFit,
-    tracks: Sequence[MatchedTrack],
+    left_out: LeftOut,
     trajectory: Trajectory,
     camera: CameraModel,
     vehicle: VehicleProfile,
     params: ModelParams,
-    gap_s: float = 5.0,
 ) -> float:
-    """Cross-validated misfit of a model class: each traversal's boxes predicted by the fit of the others
-    (started from `fit`), the median |edge residual| (px) per traversal, summed; inf when a left-out fit is
-    impossible. Used to choose between model classes: a class that fits the noise of the traversals it saw
-    predicts the others worse."""
-    clusters = _traversal_clusters(tracks, gap_s)
-    if len(clusters) < 2:
+    """Cross-validated misfit of a model class: each traversal's boxes predicted by the fit of the others,
+    the median |edge residual| (px) per traversal, summed; inf with fewer than 2 traversals or when a
+    left-out fit is impossible. Used to choose between model classes: a class that fits the noise of the
+    traversals it saw predicts the others worse."""
+    if not left_out.fits:
         return math.inf
-    quick = replace(params, max_evaluations=max(8, params.max_evaluations // 2))
     total = 0.0
-    for index, held_out in enumerate(clusters):
-        rest = [t for i, c in enumerate(clusters) if i != index for t in c]
-        try:
-            loo = fit_vehicle_model(
-                fit.R_cam_from_local, fit.t_cam_from_local, rest, trajectory, camera, vehicle, quick
-            )
-        except DegenerateGeometry:
+    for loo, held_out in zip(left_out.fits, left_out.clusters, strict=True):
+        if isinstance(loo, str):
             return math.inf
         total += _median_abs(predicted_residuals(loo, held_out, trajectory, camera, vehicle, params))
     return total

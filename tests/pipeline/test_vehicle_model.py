@@ -33,6 +33,7 @@ from pipeline.vehicle_model import (
     cuboid_shape,
     fit_trimmed,
     fit_vehicle_model,
+    leave_one_out,
     unbiased_boxes,
 )
 from schemas.common import CameraIntrinsics, VehicleProfile
@@ -188,7 +189,7 @@ def _holdout_statistics(clock_error_s: float) -> list[float]:
         loo = fit_vehicle_model(
             fit.R_cam_from_local, fit.t_cam_from_local, rest, trajectory, CAMERA, VEHICLE, params
         )
-        statistics.append(_holdout_statistic(fit, loo, held_out, trajectory, CAMERA, VEHICLE, params)[0])
+        statistics.append(_holdout_statistic(loo, held_out, trajectory, CAMERA, VEHICLE, params)[0])
     return statistics
 
 
@@ -208,7 +209,9 @@ def test_consistent_traversals_agree():
     R0, t0 = _start(2)
     params = ModelParams()
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
-    check = check_traversals(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+    check = check_traversals(
+        leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params), trajectory, CAMERA, VEHICLE, params
+    )
     assert check.disagreeing == ""
     assert check.covariance is not None
 
