@@ -414,7 +414,12 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
             run.update(_evaluation_fields(floor, "floor_"))
             with _stage_spy() as seen:
                 started = time.perf_counter()
-                outcome = calibrate(inputs_for(sim, camera_id), params, np.random.default_rng([seed, index]))
+                outcome = calibrate(
+                    inputs_for(sim, camera_id),
+                    params,
+                    np.random.default_rng([seed, index]),
+                    created_at_ns=time.time_ns(),
+                )
                 run["seconds"] = time.perf_counter() - started
             result = outcome.result
             evaluation = evaluate_against_ground_truth(result, truth)

@@ -20,6 +20,7 @@ import base64
 import html
 import io
 import math
+import time
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -735,7 +736,13 @@ def run_report(
         time_offset_ns=time_offset_ns,
     )
     with track_pool(workers) as map_fn:
-        outcome = calibrate(loaded.inputs, PipelineParams(), np.random.default_rng(seed), map_fn=map_fn)
+        outcome = calibrate(
+            loaded.inputs,
+            PipelineParams(),
+            np.random.default_rng(seed),
+            created_at_ns=time.time_ns(),
+            map_fn=map_fn,
+        )
     notes = list(loaded.notes)
     difference = _pose_difference(result, outcome.result)
     if difference is None:

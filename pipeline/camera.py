@@ -173,6 +173,12 @@ def rotation_angle_rad(R_a: Rotation, R_b: Rotation) -> float:
     return float(math.acos(min(1.0, max(-1.0, cos_angle))))
 
 
+def pose_distance(R_a: Rotation, centre_a: Vec3, R_b: Rotation, centre_b: Vec3) -> tuple[float, float]:
+    """(distance between the camera centres in m, angle of the relative rotation in deg) of two poses: the
+    one measure of how far apart two poses are (selection, validation, the daemon's change policy)."""
+    return float(np.linalg.norm(centre_a - centre_b)), math.degrees(rotation_angle_rad(R_a, R_b))
+
+
 def rotation_from_rvec(rvec: FloatArray) -> Rotation:
     """Rodrigues vector (3,) -> rotation matrix (3, 3)."""
     R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))

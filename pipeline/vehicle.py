@@ -54,6 +54,12 @@ def body_centers(poses: PoseArray, profile: VehicleProfile) -> Points3:
     return body_points_to_world(poses, centre, profile)[:, 0, :]
 
 
+def footprint_centres(poses: PoseArray, profile: VehicleProfile) -> Points3:
+    """World position of the footprint's centre (L/2, W/2, 0) for every pose: (N, 3)."""
+    centre = np.array([[profile.length / 2.0, profile.width / 2.0, 0.0]])
+    return np.asarray(body_points_to_world(poses, centre, profile)[:, 0, :], dtype=np.float64)
+
+
 def reference_from_center_footprint(
     centers: Points3, yaw: FloatArray, pitch: FloatArray, roll: FloatArray, profile: VehicleProfile
 ) -> Points3:

@@ -24,6 +24,8 @@ from pipeline.metrics import Evaluation, evaluate_against_ground_truth
 from pipeline.tracking import frames_from_detections, track_boxes
 from sim.simulate import SimulationResult, simulate
 
+CREATED_AT_NS = 1_700_000_000_000_000_000  # the result's creation time: the caller's clock
+
 pytestmark = pytest.mark.slow
 
 CALIBRATION_SEED = 0
@@ -35,7 +37,9 @@ def _run(preset: str, seed: int) -> tuple[SimulationResult, CalibrationOutcome, 
     sim = simulate(preset, seed=seed, ideal=True)
     camera = sim.cameras[0]
     inputs = calibration_inputs(sim, camera.camera_id)
-    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED))
+    outcome = calibrate(
+        inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED), created_at_ns=CREATED_AT_NS
+    )
     evaluation = evaluate_against_ground_truth(outcome.result, sim.ground_truth[camera.camera_id])
     return sim, outcome, evaluation
 
@@ -159,7 +163,9 @@ def test_coarse_hypotheses_are_regrouped_after_refinement() -> None:
     camera = next(c for c in sim.cameras if c.camera_id == "west-junction")
     truth = sim.ground_truth[camera.camera_id]
     inputs = calibration_inputs(sim, camera.camera_id)
-    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED))
+    outcome = calibrate(
+        inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED), created_at_ns=CREATED_AT_NS
+    )
     assert any(stage.stage == "regrouping" and stage.kept >= 1 for stage in outcome.stages)
     # The regrouped candidate is the vehicle's, at the truth (its whole-box pose within 0.3 m / 0.3 deg).
     assert outcome.chosen is not None
