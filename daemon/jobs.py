@@ -42,7 +42,6 @@ from pipeline.calibrate import (
 )
 from pipeline.errors import RsucalError
 from pipeline.frames import UtmFrame, poses_from_v2x
-from pipeline.validation import ValidationGates
 from schemas.common import CameraIntrinsics, VehicleProfile, describe_validation_error
 from schemas.config import GatesConfig, JobsConfig
 from schemas.messages import apply_labels
@@ -110,8 +109,7 @@ class JobOutcome:
 
 def pipeline_params(gates: GatesConfig) -> PipelineParams:
     """The pipeline's parameters for the daemon: defaults, with the configured validation gates."""
-    # Same field names on both sides (schemas.config documents them); a field added to one only fails here.
-    return PipelineParams(gates=ValidationGates(**gates.model_dump()))
+    return PipelineParams(gates=gates)
 
 
 def new_job_id(camera_id: str, now_ns: int) -> str:

@@ -54,10 +54,11 @@ from pipeline.selection import (
 )
 from pipeline.stage import StageReport, summarise_reasons
 from pipeline.tracking import FrameBoxes, TrackingParams, TrackSet, frames_from_detections, track_boxes
-from pipeline.validation import ValidationEvidence, ValidationGates, validate
+from pipeline.validation import ValidationEvidence, validate
 from pipeline.vehicle import footprint_centres
 from pipeline.vehicle_model import ModelParams
 from schemas.common import CameraIntrinsics, LocalOrigin, VehicleProfile
+from schemas.config import GatesConfig
 from schemas.messages import DetectionFrame, VehiclePose
 from schemas.results import CalibrationResult, Verdict
 
@@ -105,7 +106,7 @@ class PipelineParams:
     # amount of boxes averages out; it belongs in the camera position's uncertainty.
     refinement: RefinementParams = field(default_factory=lambda: RefinementParams(pose_bias_std_m=0.05))
     selection: SelectionParams = field(default_factory=SelectionParams)
-    gates: ValidationGates = field(default_factory=ValidationGates)
+    gates: GatesConfig = field(default_factory=GatesConfig)
     # The final joint fit (pose, time offset, vehicle template, detector bias). Its covariance is the
     # cluster-robust sandwich raised to the traversals' jackknife scatter (vehicle_model): no fixed inflation.
     model: ModelParams = field(default_factory=ModelParams)
@@ -335,7 +336,7 @@ def _grouping_report(grouping: GroupingResult) -> StageReport:
     )
 
 
-def _validate(final: FinalFit, ground: GroundPlaneFit, ambiguity: str, gates: ValidationGates) -> Verdict:
+def _validate(final: FinalFit, ground: GroundPlaneFit, ambiguity: str, gates: GatesConfig) -> Verdict:
     """The gates on the final fit's evidence; an ambiguity or disagreeing traversals refuse too."""
     evidence = ValidationEvidence(
         traversals=final.traversals,
