@@ -37,7 +37,7 @@ from matplotlib.patches import Ellipse, Polygon, Rectangle
 
 from pipeline.association import MatchedTrack
 from pipeline.calibrate import CalibrationDiagnostics, CalibrationOutcome
-from pipeline.camera import CameraModel, camera_center, project_points, undistort_pixels
+from pipeline.camera import CameraModel, camera_center, pose_distance, project_points, undistort_pixels
 from pipeline.metrics import delta_p
 from pipeline.refinement import RefinementParams, box_residuals
 from pipeline.vehicle import body_corners, footprint_corners
@@ -687,13 +687,10 @@ def _pose_difference(a: CalibrationResult, b: CalibrationResult) -> tuple[float,
     """(shift m, angle deg) between two results' camera poses, or None when one has no pose."""
     if a.R is None or a.t is None or b.R is None or b.t is None or a.frame.crs != b.frame.crs:
         return None
-    centres = []
-    for r in (a, b):
-        R, t = np.asarray(r.R), np.asarray(r.t)
-        centres.append(camera_center(R, t) + np.asarray(r.frame.origin))
-    R_delta = np.asarray(a.R) @ np.asarray(b.R).T
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R_delta)) - 1.0) / 2.0))))
-    return float(np.linalg.norm(centres[0] - centres[1])), angle
+    R_a, R_b = np.asarray(a.R, dtype=np.float64), np.asarray(b.R, dtype=np.float64)
+    centre_a = camera_center(R_a, np.asarray(a.t, dtype=np.float64)) + np.asarray(a.frame.origin)
+    centre_b = camera_center(R_b, np.asarray(b.t, dtype=np.float64)) + np.asarray(b.frame.origin)
+    return pose_distance(R_a, centre_a, R_b, centre_b)
 
 
 def run_report(
