@@ -32,12 +32,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import statistics
 import sys
 import time
 import traceback
-from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -333,24 +331,6 @@ def _calib_track_fates(
     return fates
 
 
-_NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?|inf")
-_COUNTED = re.compile(r"^(\d+) x (.*)$")
-
-
-def _condense(notes: Sequence[str]) -> list[str]:
-    """Stage notes like '1 x camera 76.2 m from the driven path > 40.0 m', one per value, counted again
-    with the numbers blanked out ('12 x camera # m from the driven path > # m')."""
-    counts: Counter[str] = Counter()
-    out = []
-    for note in notes:
-        match = _COUNTED.match(note)
-        if match:
-            counts[_NUMBER.sub("#", match.group(2))] += int(match.group(1))
-        else:
-            out.append(note)
-    return out + [f"{n} x {text}" for text, n in counts.most_common()]
-
-
 def box_area_ratio(truth: Any) -> float | None:
     """Mean detected-box area over data-sheet-cuboid-rectangle area of the calibration vehicle (frames with
     the cuboid wholly inside the image and no gross error); None without such frames."""
@@ -447,7 +427,7 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
             )
             run["stages"] = [
                 f"{s.stage}: kept {s.kept}, discarded {s.discarded}"
-                + (f" ({'; '.join(_condense(s.notes))})" if s.notes else "")
+                + (f" ({'; '.join(s.lines())})" if s.lines() else "")
                 for s in outcome.stages
             ]
             purity = _track_purity(sim, camera_id, params)

@@ -30,7 +30,6 @@ from types import FrameType
 import numpy as np
 from pydantic import ValidationError
 
-from daemon.offline import collapse_counted_notes
 from daemon.recording import MCAP_MAGIC, read_window
 from daemon.workers import track_pool
 from pipeline.calibrate import (
@@ -333,7 +332,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
         progress.calibration, progress.inputs = outcome, inputs
         for report in outcome.stages:
             notes.append(f"{report.stage}: kept {report.kept}, discarded {report.discarded}")
-            notes.extend(f"{report.stage}: {note}" for note in collapse_counted_notes(report.notes))
+            notes.extend(f"{report.stage}: {line}" for line in report.lines())
         # calibrate() knows the detections' span and its own parameters; the job knows the window it was
         # asked for and the whole daemon config.
         provenance = Provenance(

@@ -52,7 +52,7 @@ from pipeline.selection import (
     refine_groups,
     regroup,
 )
-from pipeline.stage import StageReport, summarise_reasons
+from pipeline.stage import StageReport, count_reasons
 from pipeline.tracking import FrameBoxes, TrackingParams, TrackSet, frames_from_detections, track_boxes
 from pipeline.validation import ValidationEvidence, validate
 from pipeline.vehicle import footprint_centres
@@ -322,7 +322,7 @@ def _hypotheses_report(hypothesis_set: HypothesisSet) -> StageReport:
         "hypotheses",
         len(hypothesis_set.hypotheses),
         len(hypothesis_set.rejected),
-        summarise_reasons(hypothesis_set.rejected),
+        reasons=count_reasons(hypothesis_set.rejected.values()),
     )
 
 
@@ -331,8 +331,8 @@ def _grouping_report(grouping: GroupingResult) -> StageReport:
         "grouping",
         len(grouping.groups),
         len(grouping.discarded),
-        tuple(f"group {i}: tracks {list(g.track_ids)}" for i, g in enumerate(grouping.groups))
-        + summarise_reasons(grouping.discarded),
+        tuple(f"group {i}: tracks {list(g.track_ids)}" for i, g in enumerate(grouping.groups)),
+        count_reasons(grouping.discarded.values()),
     )
 
 

@@ -22,6 +22,7 @@ from pipeline.association import MatchedTrack
 from pipeline.camera import CameraModel, project_points_cam, undistort_pixels
 from pipeline.errors import InputError
 from pipeline.hypotheses import Hypothesis, HypothesisSet
+from pipeline.stage import Reason
 from pipeline.tracking import FrameBoxes
 from pipeline.vehicle import body_centers
 from schemas.common import VehicleProfile
@@ -71,7 +72,7 @@ class GroupingResult:
     """
 
     groups: tuple[HypothesisGroup, ...]
-    discarded: Mapping[int, str]  # track_id -> reason
+    discarded: Mapping[int, Reason]  # track_id -> reason
     r_out: FloatArray
     r_ov: FloatArray
     r_sim: FloatArray
@@ -138,12 +139,12 @@ def group_hypotheses(
     np.fill_diagonal(is_edge, False)
 
     centers = np.stack([h.camera_center for h in items])
-    discarded: dict[int, str] = {}
+    discarded: dict[int, Reason] = {}
     member_sets: list[list[int]] = []
     for isolated in np.flatnonzero(~is_edge.any(axis=1)):
         i = int(isolated)
         closest = _closest_partner(i, worst_out, worst_ov, r_sim, simultaneous, track_ids)
-        discarded[track_ids[i]] = "isolated: no similar hypothesis" + closest
+        discarded[track_ids[i]] = Reason("isolated", "isolated: no similar hypothesis", detail=closest)
     _, component = connected_components(csr_matrix(is_edge), directed=False)
     for label in np.unique(component):
         members = np.flatnonzero(component == label)
@@ -276,7 +277,7 @@ def _cluster_component(
     is_edge: BoolArray,
     params: GroupingParams,
     track_ids: tuple[int, ...],
-    discarded: dict[int, str],
+    discarded: dict[int, Reason],
 ) -> list[list[int]]:
     """DBSCAN on the camera centres of one connected component (paper III-E), then each cluster split into
     its similarity-connected pieces.
@@ -291,9 +292,13 @@ def _cluster_component(
         cluster = members[labels == label]
         if label == -1:
             for i in cluster:
-                discarded[track_ids[i]] = (
-                    f"DBSCAN noise: camera position more than {params.dbscan_eps_m} m from the "
-                    "positions of similar hypotheses"
+                discarded[track_ids[i]] = Reason(
+                    "dbscan_noise",
+                    "DBSCAN noise: camera position more than {limit} m from the positions of similar "
+                    "hypotheses",
+                    "distance to similar hypotheses' camera positions",
+                    limit=params.dbscan_eps_m,
+                    unit="m",
                 )
             continue
         _, piece_of = connected_components(csr_matrix(is_edge[np.ix_(cluster, cluster)]), directed=False)
@@ -302,8 +307,9 @@ def _cluster_component(
             if len(piece_members) >= 2:
                 pieces.append([int(i) for i in piece_members])
             else:
-                discarded[track_ids[piece_members[0]]] = (
-                    "alone in its DBSCAN cluster: no similar hypothesis with a nearby camera position"
+                discarded[track_ids[piece_members[0]]] = Reason(
+                    "alone_in_cluster",
+                    "alone in its DBSCAN cluster: no similar hypothesis with a nearby camera position",
                 )
     return pieces
 

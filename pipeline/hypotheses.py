@@ -29,6 +29,7 @@ from pipeline.camera import (
     rvec_from_rotation,
 )
 from pipeline.ground import GroundPlaneFit
+from pipeline.stage import Reason
 from pipeline.straight_track import (
     StraightTrackParams,
     TrackShape,
@@ -125,7 +126,7 @@ class Hypothesis:
 @dataclass(frozen=True, slots=True)
 class HypothesisSet:
     hypotheses: tuple[Hypothesis, ...]
-    rejected: Mapping[int, str]  # track_id -> reason; nothing disappears silently
+    rejected: Mapping[int, Reason]  # track_id -> reason; nothing disappears silently
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,12 +159,12 @@ def create_hypotheses(
     """
     path = _driven_path(_path_xy(tracks, trajectory))
     hypotheses: list[Hypothesis] = []
-    rejected: dict[int, str] = {}
+    rejected: dict[int, Reason] = {}
     # Seeds are drawn in track order up front, so each track's seed does not depend on others' outcome.
     seeds = [int(rng.integers(0, 2**31 - 1)) for _ in tracks]
     fit = _TrackFit(camera, vehicle, ground, path, params)
     for track, outcome in zip(tracks, map_fn(fit, tracks, seeds), strict=True):
-        if isinstance(outcome, str):
+        if isinstance(outcome, Reason):
             rejected[track.track_id] = outcome
         else:
             hypotheses.append(outcome)
@@ -255,7 +256,7 @@ class _TrackFit:
     path: _DrivenPath
     params: HypothesisParams
 
-    def __call__(self, track: MatchedTrack, seed: int) -> Hypothesis | str:
+    def __call__(self, track: MatchedTrack, seed: int) -> Hypothesis | Reason:
         return _hypothesis_for(track, self.camera, self.vehicle, self.ground, self.path, self.params, seed)
 
 
@@ -267,28 +268,47 @@ def _hypothesis_for(
     path: _DrivenPath,
     params: HypothesisParams,
     seed: int,
-) -> Hypothesis | str:
+) -> Hypothesis | Reason:
     """The hypothesis of one track, or the reason it is rejected."""
     count = len(track.stamps)
     if count < params.min_correspondences:
-        return f"too few correspondences: {count} < {params.min_correspondences}"
+        return Reason(
+            "too_few_correspondences",
+            "too few correspondences: {value} < {limit}",
+            "correspondences",
+            count,
+            params.min_correspondences,
+            value_format="d",
+        )
     pixels = track.box_centers
     points = body_centers(track.poses, vehicle)
     if not (np.all(np.isfinite(pixels)) and np.all(np.isfinite(points))):
-        return "degenerate: non-finite boxes or poses"
+        return Reason("non_finite", "degenerate: non-finite boxes or poses")
     image_extent = _extent(pixels)
     if image_extent < params.min_image_extent_px:
-        return (
-            f"not moving in the image: box centres span {image_extent:.1f} px "
-            f"< {params.min_image_extent_px} px"
+        return Reason(
+            "not_moving_in_image",
+            "not moving in the image: box centres span {value} px < {limit} px",
+            "box centre extent",
+            image_extent,
+            params.min_image_extent_px,
+            "px",
         )
     track_extent = _extent(points[:, :2])
     if track_extent < params.min_track_extent_m:
-        return f"vehicle not moving: track spans {track_extent:.2f} m < {params.min_track_extent_m} m"
+        return Reason(
+            "vehicle_not_moving",
+            "vehicle not moving: track spans {value} m < {limit} m",
+            "track extent",
+            track_extent,
+            params.min_track_extent_m,
+            "m",
+            ".2f",
+        )
 
     shape = TrackShape(track.boxes, track.poses, vehicle)
     fit = _fit_track(points, pixels, shape, camera, ground, params, seed, track_extent)
-    if isinstance(fit, str):
+    if isinstance(fit, Reason):
         return fit
     solved, errors, median_px, rotation_std_deg = fit
     inliers = errors <= params.reproj_threshold_px
@@ -297,10 +317,24 @@ def _hypothesis_for(
     center = camera_center(R, t)
     distance_m = _distance_to_path(center[:2], path)
     if not distance_m <= params.max_camera_distance_m:
-        return f"camera {distance_m:.1f} m from the driven path > {params.max_camera_distance_m} m"
+        return Reason(
+            "far_from_path",
+            "camera {value} m from the driven path > {limit} m",
+            "camera distance from the driven path",
+            distance_m,
+            params.max_camera_distance_m,
+            "m",
+        )
     height_m = float(ground.height_of(center[None, :])[0])
     if height_m < params.min_camera_height_m:
-        return f"camera {height_m:.1f} m above ground < {params.min_camera_height_m} m (below the road)"
+        return Reason(
+            "below_road",
+            "camera {value} m above ground < {limit} m (below the road)",
+            "camera height above ground",
+            height_m,
+            params.min_camera_height_m,
+            "m",
+        )
     return Hypothesis(
         track_id=track.track_id,
         R_cam_from_local=R,
@@ -321,7 +355,7 @@ def _fit_track(
     params: HypothesisParams,
     seed: int,
     track_extent_m: float,
-) -> tuple[_Pose, FloatArray, float, float] | str:
+) -> tuple[_Pose, FloatArray, float, float] | Reason:
     """Pose, per-row reprojection errors (px), their median and the rotation 1-sigma (deg); or a reason.
 
     The paper's unconstrained EPnP + RANSAC first; when the track leaves the pose unfixed (a straight
@@ -329,11 +363,18 @@ def _fit_track(
     when it fixes the pose only weakly, whichever of the two reproduces the boxes' shape better.
     """
     line_residual_m = _line_residual(points)
-    degenerate: str
+    degenerate: Reason
     if line_residual_m <= 1e-3 * track_extent_m:
         # Exactly collinear: OpenCV may raise, loop or return any member of the family of poses about
         # the line, so the unconstrained solvers are not even tried.
-        degenerate = f"degenerate: straight-line track (within {line_residual_m:.3f} m of a line)"
+        degenerate = Reason(
+            "straight_line",
+            "degenerate: straight-line track (within {value} m of a line)",
+            "distance from a line",
+            line_residual_m,
+            unit="m",
+            value_format=".3f",
+        )
         bases: list[_Pose] = []
     else:
         solved = _solve(points, pixels, camera, params, seed)
@@ -341,7 +382,7 @@ def _fit_track(
             errors = _reprojection_errors(points, pixels, solved.rvec, solved.tvec, camera)
             median_px = float(np.median(errors))
             if not median_px <= params.max_median_reproj_px:
-                return f"median reprojection error {median_px:.1f} px > {params.max_median_reproj_px} px"
+                return _reprojection_reason(median_px, params)
             inliers = errors <= params.reproj_threshold_px
             rotation_std_deg = _rotation_std_deg(points[inliers], pixels[inliers], solved, camera)
             if rotation_std_deg <= params.max_rotation_std_deg:
@@ -356,9 +397,14 @@ def _fit_track(
                 ):
                     return free
                 return level
-            degenerate = (
-                f"degenerate: rotation not fixed by the track (1-sigma {rotation_std_deg:.1f} deg > "
-                f"{params.max_rotation_std_deg} deg; straight-line track?)"
+            degenerate = Reason(
+                "rotation_not_fixed",
+                "degenerate: rotation not fixed by the track (1-sigma {value} deg > {limit} deg; "
+                "straight-line track?)",
+                "rotation 1-sigma",
+                rotation_std_deg,
+                params.max_rotation_std_deg,
+                "deg",
             )
             bases = [solved]
         else:
@@ -367,7 +413,7 @@ def _fit_track(
         return degenerate
     level = _checked_level(points, pixels, shape, camera, ground, bases, params, seed)
     if isinstance(level, str):
-        return f"{degenerate}; straight-track fit: {level}"
+        return degenerate.with_detail(f"; straight-track fit: {level}")
     return level
 
 
@@ -432,7 +478,7 @@ def _checked_level(
     errors = _reprojection_errors(points, pixels, level.rvec, level.tvec, camera)
     median_px = float(np.median(errors))
     if not median_px <= params.max_median_reproj_px:
-        return f"median reprojection error {median_px:.1f} px > {params.max_median_reproj_px} px"
+        return _reprojection_reason(median_px, params).render()
     if not fit.rotation_std_deg <= params.max_rotation_std_deg:
         return f"1-sigma {fit.rotation_std_deg:.1f} deg"
     return level, errors, median_px, fit.rotation_std_deg
@@ -446,7 +492,7 @@ def _box_misfit(pose: _Pose, shape: TrackShape, camera: CameraModel) -> float:
 
 def _solve(
     points: Points3, pixels: Pixels, camera: CameraModel, params: HypothesisParams, seed: int
-) -> _Pose | str:
+) -> _Pose | Reason:
     """EPnP + RANSAC (paper III-D), then the best of several refits on the inliers; or a reason.
 
     EPnP is unstable on the (near-)coplanar, near-collinear points a vehicle on a flat road gives: on
@@ -471,19 +517,21 @@ def _solve(
             flags=cv2.SOLVEPNP_EPNP,
         )
     except cv2.error as err:
-        return f"degenerate: EPnP + RANSAC failed ({_cv2_message(err)})"
+        return Reason("epnp_failed", "degenerate: EPnP + RANSAC failed", detail=f" ({_cv2_message(err)})")
     if not found or inlier_index is None or len(inlier_index) < 4:
-        return "no camera pose fits: RANSAC found no consensus of 4 or more correspondences"
+        return Reason(
+            "no_consensus", "no camera pose fits: RANSAC found no consensus of 4 or more correspondences"
+        )
     candidates: list[_Pose] = []
     if not _append_finite(candidates, rvec, tvec, "epnp"):
-        return "degenerate: EPnP returned a non-finite pose"
+        return Reason("epnp_non_finite", "degenerate: EPnP returned a non-finite pose")
     selected = np.asarray(inlier_index, dtype=np.int64).reshape(-1)
     if params.refine_on_inliers:
         candidates.extend(_refits(points[selected], pixels[selected], candidates[0], camera))
     rms = [_rms(points[selected], pixels[selected], pose, camera) for pose in candidates]
     best = int(np.argmin(rms))
     if not math.isfinite(rms[best]):
-        return "degenerate: no candidate pose has the inliers in front of the camera"
+        return Reason("behind_camera", "degenerate: no candidate pose has the inliers in front of the camera")
     return candidates[best]
 
 
@@ -577,3 +625,14 @@ def _cv2_message(err: cv2.error) -> str:
     """The first line of an OpenCV error, without its source path."""
     text = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
     return text[-200:]
+
+
+def _reprojection_reason(median_px: float, params: HypothesisParams) -> Reason:
+    return Reason(
+        "reprojection_error",
+        "median reprojection error {value} px > {limit} px",
+        "median reprojection error",
+        median_px,
+        params.max_median_reproj_px,
+        "px",
+    )

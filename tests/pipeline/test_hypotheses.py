@@ -195,7 +195,14 @@ def test_rejects_too_few_correspondences() -> None:
     track = exact_track(curved_poses(6), camera, R, t, track_id=9)
     result = solve_one(track, camera)
     assert result.hypotheses == ()
-    assert result.rejected[9].startswith("too few correspondences: 6 < 8")
+    assert str(result.rejected[9]).startswith("too few correspondences: 6 < 8")
+    reason = result.rejected[9]
+    assert (reason.code, reason.quantity, reason.value, reason.limit) == (
+        "too_few_correspondences",
+        "correspondences",
+        6,
+        8,
+    )
 
 
 def test_rejects_vehicle_parked_in_view() -> None:
@@ -203,7 +210,7 @@ def test_rejects_vehicle_parked_in_view() -> None:
     R, t = true_pose()
     parked = np.repeat(curved_poses()[40:41], 50, axis=0)
     result = solve_one(exact_track(parked, camera, R, t), camera)
-    assert result.rejected[1].startswith("not moving in the image")
+    assert str(result.rejected[1]).startswith("not moving in the image")
 
 
 def test_rejects_box_track_moving_while_the_vehicle_is_parked() -> None:
@@ -214,7 +221,7 @@ def test_rejects_box_track_moving_while_the_vehicle_is_parked() -> None:
     parked = np.repeat(curved_poses()[:1], 50, axis=0)
     parked[:, 1] += 200.0
     result = solve_one(MatchedTrack(1, moving.stamps, moving.boxes, parked), camera)
-    assert result.rejected[1].startswith("vehicle not moving")
+    assert str(result.rejected[1]).startswith("vehicle not moving")
 
 
 def test_rejects_camera_far_from_the_driven_path() -> None:
@@ -223,7 +230,9 @@ def test_rejects_camera_far_from_the_driven_path() -> None:
     track = exact_track(curved_poses(), camera, R, t)
     # The camera stands ~15 m from the turn; with d_thr = 10 m that is too far.
     result = solve_one(track, camera, HypothesisParams(max_camera_distance_m=10.0))
-    assert "from the driven path > 10.0 m" in result.rejected[1]
+    assert "from the driven path > 10.0 m" in str(result.rejected[1])
+    far = result.rejected[1]
+    assert far.code == "far_from_path" and far.limit == 10.0 and far.value is not None and far.value > 10.0
     assert solve_one(track, camera, HypothesisParams(max_camera_distance_m=20.0)).rejected == {}
 
 
@@ -240,7 +249,7 @@ def test_distance_to_path_uses_segments_of_a_sparse_trajectory() -> None:
     far_poses = sparse.poses.copy()
     far_poses[:, 1] += 300.0
     far_away = Trajectory(stamps=sparse.stamps, poses=far_poses)
-    assert "from the driven path" in solve_one(track, camera, trajectory=far_away).rejected[1]
+    assert "from the driven path" in str(solve_one(track, camera, trajectory=far_away).rejected[1])
 
 
 def test_rejects_camera_below_ground() -> None:
@@ -250,7 +259,7 @@ def test_rejects_camera_below_ground() -> None:
     # A ground plane 12 m up puts the (correct) camera 4 m under it.
     above_camera = GroundPlaneFit(normal=np.array([0.0, 0.0, 1.0]), offset=12.0)
     result = solve_one(track, camera, ground=above_camera)
-    assert result.rejected[1].startswith("camera -4.0 m above ground")
+    assert str(result.rejected[1]).startswith("camera -4.0 m above ground")
 
 
 def test_rejects_high_median_reprojection_error() -> None:
@@ -262,7 +271,7 @@ def test_rejects_high_median_reprojection_error() -> None:
     jump = np.array([0.0, 40.0, -40.0])[np.arange(len(track.boxes)) % 3]
     boxes = track.boxes + np.column_stack([jump, np.zeros_like(jump), jump, np.zeros_like(jump)])
     result = solve_one(MatchedTrack(1, track.stamps, boxes, track.poses), camera)
-    assert result.rejected[1].startswith("median reprojection error")
+    assert str(result.rejected[1]).startswith("median reprojection error")
 
 
 def road_poses(heading_deg: float, count: int = 120, length_m: float = 40.0) -> np.ndarray:
@@ -306,7 +315,7 @@ def test_rejects_straight_line_track_seen_side_on() -> None:
     camera = make_camera()
     R, t = true_pose()
     result = solve_one(exact_track(straight_poses(), camera, R, t), camera)
-    reason = result.rejected[1]
+    reason = str(result.rejected[1])
     assert reason.startswith("degenerate: straight-line track")
     assert "side-on" in reason
 
@@ -316,8 +325,8 @@ def test_straight_line_track_without_the_level_prior_is_rejected() -> None:
     R, t = true_pose()
     track = visible_track(road_poses(60.0), camera, R, t)
     result = solve_one(track, camera, HypothesisParams(level_camera_prior=False))
-    assert result.rejected[1].startswith("degenerate: straight-line track")
-    assert "level" not in result.rejected[1]
+    assert str(result.rejected[1]).startswith("degenerate: straight-line track")
+    assert "level" not in str(result.rejected[1])
 
 
 @pytest.mark.parametrize("heading_deg", [30.0, 60.0, 95.0])
@@ -428,7 +437,7 @@ def test_upside_down_camera_is_rejected_unless_assumed(heading_deg: float) -> No
     track = visible_track(road_poses(heading_deg), camera, R, t)
     result = solve_one(track, camera)
     assert result.hypotheses == ()
-    assert "not within 15.0 deg of [0.0, 90.0, -90.0] deg" in result.rejected[1]
+    assert "not within 15.0 deg of [0.0, 90.0, -90.0] deg" in str(result.rejected[1])
     mounts = HypothesisParams(straight_track=StraightTrackParams(mount_rolls_deg=(0.0, 90.0, -90.0, 180.0)))
     (hypothesis,) = solve_one(track, camera, mounts).hypotheses
     assert hypothesis.solver == "level+180"
@@ -447,8 +456,8 @@ def test_boxes_of_another_size_are_not_the_calibration_vehicle() -> None:
         MatchedTrack(1, track.stamps, np.hstack([centres - half, centres + half]), track.poses), camera
     )
     assert result.hypotheses == ()
-    assert result.rejected[1].startswith("degenerate: straight-line track")
-    assert "straight-track fit" in result.rejected[1]
+    assert str(result.rejected[1]).startswith("degenerate: straight-line track")
+    assert "straight-track fit" in str(result.rejected[1])
 
 
 def test_nearly_straight_track_is_settled_by_the_box_shape() -> None:
