@@ -314,7 +314,7 @@ def _calib_track_fates(
             fates.append(f"{head}: hypothesis rejected: {hypotheses.rejected[track_id]}")
         elif track_id in by_id and origin is not None:
             h = by_id[track_id]
-            centre = h.camera_center + np.array([origin.x, origin.y, origin.z])
+            centre = h.camera_centre + np.array([origin.x, origin.y, origin.z])
             angle = math.degrees(rotation_angle_rad(h.R_cam_from_local, np.asarray(truth.R)))
             where = "not grouped"
             if grouping is not None:

@@ -23,12 +23,12 @@ import numpy as np
 from pyproj.exceptions import CRSError
 from tqdm import tqdm
 
-from daemon.atomic import write_atomic
 from daemon.keys import v2x_key
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
 from pipeline.loaders import load_intrinsics, load_toolbox_detections, load_toolbox_poses, load_vehicle
+from schemas.atomic import write_atomic
 from schemas.common import EPSG_PATTERN, IDENTIFIER, LOCAL_CRS, CameraIntrinsics, VehicleProfile
 from schemas.messages import VehiclePose
 from schemas.results import CalibrationResult
@@ -338,7 +338,7 @@ def format_stage_reports(outcome: CalibrationOutcome) -> str:
         lines.append("candidate groups (* chosen):")
         for candidate in outcome.candidates:
             mark = "*" if candidate is outcome.chosen else " "
-            centre = candidate.whole_box.camera_center + origin
+            centre = candidate.whole_box.camera_centre + origin
             lines.append(
                 f"  {mark} tracks {list(candidate.track_ids)}: {candidate.traversals} traversal(s), "
                 f"box error {100.0 * candidate.box_error_rel:.2f} %, "

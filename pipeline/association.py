@@ -165,7 +165,7 @@ class MatchedTrack:
             )
 
     @property
-    def box_centers(self) -> Pixels:
+    def box_centres(self) -> Pixels:
         """Box centres (N, 2) px: the image half of the paper's correspondences."""
         return np.column_stack(
             [(self.boxes[:, 0] + self.boxes[:, 2]) / 2.0, (self.boxes[:, 1] + self.boxes[:, 3]) / 2.0]

@@ -343,7 +343,7 @@ def _validate(final: FinalFit, ground: GroundPlaneFit, ambiguity: str, gates: Ga
         tracks=len(final.tracks),
         correspondences=int(final.fit.used_residuals),
         delta_p_mean_m=final.delta_p_mean_m,
-        camera_height_m=float(ground.height_of(final.fit.camera_center[None, :])[0]),
+        camera_height_m=float(ground.height_of(final.fit.camera_centre[None, :])[0]),
         position_std_m=final.position_std_m,
         rotation_std_deg=final.rotation_std_deg,
         box_error_pct=100.0 * final.box_error_rel,

@@ -162,7 +162,7 @@ def camera_rotation_from_view(yaw: float, pitch_down: float, roll: float = 0.0) 
     return R_world_from_cam.T.copy()
 
 
-def camera_center(R_cam_from_local: Rotation, t_cam_from_local: Vec3) -> Vec3:
+def camera_centre(R_cam_from_local: Rotation, t_cam_from_local: Vec3) -> Vec3:
     """Camera position in the local frame: -R^T t (paper Sec. III-D)."""
     return -R_cam_from_local.T @ t_cam_from_local
 

@@ -24,7 +24,7 @@ from pipeline.errors import InputError
 from pipeline.hypotheses import Hypothesis, HypothesisSet
 from pipeline.stage import Reason
 from pipeline.tracking import FrameBoxes
-from pipeline.vehicle import body_centers
+from pipeline.vehicle import body_centres
 from schemas.common import VehicleProfile
 
 
@@ -57,7 +57,7 @@ class HypothesisGroup:
     correspondences: the members' inlier rows (`Hypothesis.inliers`) summed."""
 
     track_ids: tuple[int, ...]
-    camera_center: Vec3
+    camera_centre: Vec3
     mean_overlap_ratio: float
     correspondences: int = 0
 
@@ -138,7 +138,7 @@ def group_hypotheses(
     )
     np.fill_diagonal(is_edge, False)
 
-    centers = np.stack([h.camera_center for h in items])
+    centres = np.stack([h.camera_centre for h in items])
     discarded: dict[int, Reason] = {}
     member_sets: list[list[int]] = []
     for isolated in np.flatnonzero(~is_edge.any(axis=1)):
@@ -150,9 +150,9 @@ def group_hypotheses(
         members = np.flatnonzero(component == label)
         if len(members) < 2:
             continue  # isolated, reported above
-        member_sets.extend(_cluster_component(members, centers, is_edge, params, track_ids, discarded))
+        member_sets.extend(_cluster_component(members, centres, is_edge, params, track_ids, discarded))
 
-    groups = [_make_group(members, items, centers, r_ov, track_ids) for members in member_sets]
+    groups = [_make_group(members, items, centres, r_ov, track_ids) for members in member_sets]
     groups.sort(key=_group_rank)
     return GroupingResult(tuple(groups), discarded, r_out, r_ov, r_sim, track_ids)
 
@@ -178,7 +178,7 @@ def _simultaneous(items: Sequence[Hypothesis], tracks: Mapping[int, MatchedTrack
 def _track_view(
     track: MatchedTrack, boxes_by_stamp: Mapping[int, Boxes], vehicle: VehicleProfile
 ) -> _TrackView:
-    positions = body_centers(track.poses, vehicle)
+    positions = body_centres(track.poses, vehicle)
     per_row = [boxes_by_stamp.get(int(stamp), np.zeros((0, 4))) for stamp in track.stamps]
     width = max((len(b) for b in per_row), default=0)
     frame_boxes = np.full((len(per_row), max(width, 1), 4), np.nan)
@@ -273,7 +273,7 @@ def _closest_partner(
 
 def _cluster_component(
     members: IntArray,
-    centers: Points3,
+    centres: Points3,
     is_edge: BoolArray,
     params: GroupingParams,
     track_ids: tuple[int, ...],
@@ -286,7 +286,7 @@ def _cluster_component(
     the scores together (e.g. followers at different gaps, each linked to the truth) could share a
     cluster merely by sitting a few metres apart. A group is kept only where similarity links it.
     """
-    labels = dbscan_labels(centers[members], params.dbscan_eps_m, params.dbscan_min_samples)
+    labels = dbscan_labels(centres[members], params.dbscan_eps_m, params.dbscan_min_samples)
     pieces: list[list[int]] = []
     for label in np.unique(labels):
         cluster = members[labels == label]
@@ -327,7 +327,7 @@ def _group_rank(group: HypothesisGroup) -> tuple[int, int, float, tuple[int, ...
 def _make_group(
     members: list[int],
     items: Sequence[Hypothesis],
-    centers: Points3,
+    centres: Points3,
     r_ov: FloatArray,
     track_ids: tuple[int, ...],
 ) -> HypothesisGroup:
@@ -336,7 +336,7 @@ def _make_group(
     off_diagonal = overlap[~np.eye(len(index), dtype=bool)]
     return HypothesisGroup(
         track_ids=tuple(track_ids[i] for i in index),
-        camera_center=centers[index].mean(axis=0),
+        camera_centre=centres[index].mean(axis=0),
         mean_overlap_ratio=float(off_diagonal.mean()) if off_diagonal.size else 0.0,
         correspondences=int(sum(int(items[i].inliers.sum()) for i in index)),
     )

@@ -23,7 +23,7 @@ from pipeline.arrays import FloatArray, Mask, Pixels, Points3, Rotation, Vec3
 from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     project_points,
     rotation_from_rvec,
     rvec_from_rotation,
@@ -37,7 +37,7 @@ from pipeline.straight_track import (
     solve_straight_track,
     track_line,
 )
-from pipeline.vehicle import body_centers
+from pipeline.vehicle import body_centres
 from schemas.common import VehicleProfile
 
 # LM runs until the step is negligible: EPnP and SQPnP undistort with OpenCV's approximate inverse and
@@ -118,9 +118,9 @@ class Hypothesis:
     solver: str = "epnp"
 
     @property
-    def camera_center(self) -> Vec3:
+    def camera_centre(self) -> Vec3:
         """Camera position in the local frame (m): -R^T t (paper III-D)."""
-        return camera_center(self.R_cam_from_local, self.t_cam_from_local)
+        return camera_centre(self.R_cam_from_local, self.t_cam_from_local)
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,7 +150,7 @@ def create_hypotheses(
     """One EPnP + RANSAC camera pose per matched track, filtered as in paper III-D.
 
     Correspondences: box centre (px, distorted image) <-> body-box centre of the vehicle (local frame, m,
-    `vehicle.body_centers`); lens distortion is honoured (OpenCV undistorts inside solvePnP*).
+    `vehicle.body_centres`); lens distortion is honoured (OpenCV undistorts inside solvePnP*).
     `trajectory` is the whole driven path for the d_thr test; without it the tracks' own poses stand in
     (shorter, so stricter). `ground` gives the camera height. Randomness: one OpenCV RNG seed per track
     drawn from `rng`, so results depend on `rng` alone. Returns hypotheses in track order and a reason for
@@ -280,8 +280,8 @@ def _hypothesis_for(
             params.min_correspondences,
             value_format="d",
         )
-    pixels = track.box_centers
-    points = body_centers(track.poses, vehicle)
+    pixels = track.box_centres
+    points = body_centres(track.poses, vehicle)
     if not (np.all(np.isfinite(pixels)) and np.all(np.isfinite(points))):
         return Reason("non_finite", "degenerate: non-finite boxes or poses")
     image_extent = _extent(pixels)
@@ -314,8 +314,8 @@ def _hypothesis_for(
     inliers = errors <= params.reproj_threshold_px
     R = rotation_from_rvec(solved.rvec)
     t = solved.tvec.reshape(3).copy()
-    center = camera_center(R, t)
-    distance_m = _distance_to_path(center[:2], path)
+    centre = camera_centre(R, t)
+    distance_m = _distance_to_path(centre[:2], path)
     if not distance_m <= params.max_camera_distance_m:
         return Reason(
             "far_from_path",
@@ -325,7 +325,7 @@ def _hypothesis_for(
             params.max_camera_distance_m,
             "m",
         )
-    height_m = float(ground.height_of(center[None, :])[0])
+    height_m = float(ground.height_of(centre[None, :])[0])
     if height_m < params.min_camera_height_m:
         return Reason(
             "below_road",
@@ -461,7 +461,7 @@ def _checked_level(
     if min(base_medians) > 2.0 * params.max_median_reproj_px:
         return f"start misses by a median {min(base_medians):.1f} px"
     rotations = [rotation_from_rvec(base.rvec) for base in candidates]
-    starts = [(R, camera_center(R, base.tvec)) for R, base in zip(rotations, candidates, strict=True)]
+    starts = [(R, camera_centre(R, base.tvec)) for R, base in zip(rotations, candidates, strict=True)]
     fit = solve_straight_track(
         points,
         (origin, direction),
@@ -487,7 +487,7 @@ def _checked_level(
 def _box_misfit(pose: _Pose, shape: TrackShape, camera: CameraModel) -> float:
     """How badly the pose reproduces the track's boxes (`pipeline.straight_track.pose_box_misfit`)."""
     R = rotation_from_rvec(pose.rvec)
-    return pose_box_misfit(R, camera_center(R, pose.tvec), shape, camera)
+    return pose_box_misfit(R, camera_centre(R, pose.tvec), shape, camera)
 
 
 def _solve(

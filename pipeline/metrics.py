@@ -31,7 +31,7 @@ from pipeline.arrays import (
 )
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     project_points,
     quaternion_wxyz_from_rotation,
     rotation_angle_rad,
@@ -156,7 +156,7 @@ def back_project_bottom_edges(
     rays_cam = np.column_stack([xy, np.ones(len(xy))])
     # Row-vector form of R^T d: camera-frame ray directions in the local frame.
     rays_local = (rays_cam @ R_cam_from_local).reshape(n, samples, 3)
-    centre = camera_center(R_cam_from_local, t_cam_from_local)
+    centre = camera_centre(R_cam_from_local, t_cam_from_local)
     denom = np.einsum("nsj,nj->ns", rays_local, normals)
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (offsets - normals @ centre)[:, None] / denom
@@ -250,7 +250,7 @@ def delta_p(
         rows = np.arange(len(best))
         delta[valid] = per_corner[rows, best]
         corner[valid] = best
-        centre = camera_center(R, t)
+        centre = camera_centre(R, t)
         distance[valid] = np.linalg.norm(footprints[valid][rows, best] - centre, axis=1)
     return BoxErrors(delta, distance, corner, valid, clipped, misses)
 
@@ -385,7 +385,7 @@ def evaluate_against_ground_truth(
         errors = delta_p(boxes, footprints, R, t, camera, params=params)
         summary = summarize(errors)
         R_truth = np.asarray(truth.R, dtype=np.float64)
-        centre_utm = camera_center(R, t) + np.asarray(truth.origin, dtype=np.float64)
+        centre_utm = camera_centre(R, t) + np.asarray(truth.origin, dtype=np.float64)
         error_vec = centre_utm - np.asarray(truth.camera_position_utm, dtype=np.float64)
         position_error = float(np.linalg.norm(error_vec))
         horizontal_error = float(np.linalg.norm(error_vec[:2]))

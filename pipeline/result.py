@@ -74,7 +74,7 @@ def calibration_result(
     refined = final.fit
     R = refined.R_cam_from_local
     t = refined.t_cam_from_local
-    centre_local = refined.camera_center
+    centre_local = refined.camera_centre
     centre_utm = centre_local + np.array([origin.x, origin.y, origin.z])
     lat = lon = alt = None
     if inputs.crs != LOCAL_CRS:  # a local metric frame has no geographic position

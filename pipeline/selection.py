@@ -151,7 +151,7 @@ def describe(candidate: Candidate) -> str:
 
 
 def _distance(a: Refinement, b: Refinement) -> tuple[float, float]:
-    return pose_distance(a.R_cam_from_local, a.camera_center, b.R_cam_from_local, b.camera_center)
+    return pose_distance(a.R_cam_from_local, a.camera_centre, b.R_cam_from_local, b.camera_centre)
 
 
 # --- candidates ------------------------------------------------------------------------------------------

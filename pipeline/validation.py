@@ -96,9 +96,9 @@ def count_traversals(
     if not track_spans:
         return 0
     spans = sorted(track_spans)
-    camera_center = -R_cam_from_local.T @ t_cam_from_local
+    camera_centre = -R_cam_from_local.T @ t_cam_from_local
     pixels, depth = project_points(trajectory_poses[:, :3], R_cam_from_local, t_cam_from_local, camera)
-    distance = np.linalg.norm(trajectory_poses[:, :3] - camera_center, axis=1)
+    distance = np.linalg.norm(trajectory_poses[:, :3] - camera_centre, axis=1)
     with np.errstate(invalid="ignore"):
         in_view = (
             (depth > 0)

@@ -149,6 +149,7 @@ class CalibrationVehicle(StrictModel):
     """A vehicle whose V2X positions are trusted for calibration: its station id and body."""
 
     station_id: int = Field(ge=0, le=4_294_967_295)
+    # `profile` is the rsu.yaml key (a published contract, kept); in code a VehicleProfile is `vehicle`.
     profile: VehicleProfile
     time_offset_ns: int = Field(
         default=0,

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from pipeline.association import AssociationParams, MatchedTrack, Trajectory, match_tracks
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     camera_rotation_from_view,
     project_points,
     rotation_angle_rad,
@@ -22,12 +22,12 @@ from pipeline.ground import GroundPlaneFit
 from pipeline.hypotheses import HypothesisParams, HypothesisSet, create_hypotheses
 from pipeline.straight_track import StraightTrackParams
 from pipeline.tracking import ImageTrack
-from pipeline.vehicle import body_centers, body_corners
+from pipeline.vehicle import body_centres, body_corners
 from schemas.common import CameraIntrinsics, VehicleProfile
 
 VEHICLE = VehicleProfile(length=4.6, width=1.9, height=1.5, imu_offset=(1.3, 0.95, 0.4))
 GROUND = GroundPlaneFit(normal=np.array([0.0, 0.0, 1.0]), offset=0.0)
-CAMERA_CENTER = np.array([4.0, -14.0, 8.0])
+CAMERA_CENTRE = np.array([4.0, -14.0, 8.0])
 START_NS = 1_700_000_000_000_000_000
 FRAME_NS = 100_000_000  # 10 fps
 
@@ -50,7 +50,7 @@ def true_pose(
     yaw_deg: float = 95.0, pitch_deg: float = 18.0, roll_deg: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     R = camera_rotation_from_view(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
-    return R, -R @ CAMERA_CENTER
+    return R, -R @ CAMERA_CENTRE
 
 
 def curved_poses(count: int = 120) -> np.ndarray:
@@ -73,7 +73,7 @@ def exact_track(
 ) -> MatchedTrack:
     """Boxes of the projected vehicle cuboid's size, centred on the exact projections of the body centres
     (a tight box's centre is a few px off that projection; here the centre correspondences are exact)."""
-    pixels, depth = project_points(body_centers(poses, VEHICLE), R, t, camera)
+    pixels, depth = project_points(body_centres(poses, VEHICLE), R, t, camera)
     assert np.all(depth > 0)
     assert np.all((pixels >= 0) & (pixels <= [camera.width, camera.height]))
     corners, _ = project_points(body_corners(poses, VEHICLE).reshape(-1, 3), R, t, camera)
@@ -110,7 +110,7 @@ def test_epnp_recovers_exact_pose(fx: float, k1: float) -> None:
     assert result.rejected == {}
     (hypothesis,) = result.hypotheses
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-7
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-5)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-5)
     assert hypothesis.inliers.all()
     assert hypothesis.median_reproj_px < 1e-4
     assert hypothesis.rotation_std_deg < 0.5
@@ -141,12 +141,12 @@ def test_exact_pose_round_trips_for_any_view(
     camera = make_camera(900.0, k1)
     R, t = true_pose(yaw_deg, pitch_deg, roll_deg)
     poses = curved_poses()
-    pixels, depth = project_points(body_centers(poses, VEHICLE), R, t, camera)
+    pixels, depth = project_points(body_centres(poses, VEHICLE), R, t, camera)
     visible = (depth > 0) & np.all((pixels > 0) & (pixels < [camera.width, camera.height]), axis=1)
     track = exact_track(poses[visible], camera, R, t)
     (hypothesis,) = solve_one(track, camera).hypotheses
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-6
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-4)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-4)
 
 
 def test_ransac_rejects_twenty_percent_gross_outliers() -> None:
@@ -163,7 +163,7 @@ def test_ransac_rejects_twenty_percent_gross_outliers() -> None:
     corrupted = MatchedTrack(track.track_id, track.stamps, boxes, track.poses)
     (hypothesis,) = solve_one(corrupted, camera).hypotheses
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-7
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-5)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-5)
     expected = np.ones(len(boxes), dtype=bool)
     expected[bad] = False
     np.testing.assert_array_equal(hypothesis.inliers, expected)
@@ -336,7 +336,7 @@ def test_straight_track_along_the_view_is_solved_for_a_level_camera(heading_deg:
     (hypothesis,) = solve_one(visible_track(road_poses(heading_deg), camera, R, t), camera).hypotheses
     assert hypothesis.solver == "level"
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-6
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-4)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-4)
 
 
 def test_level_prior_error_follows_the_camera_roll() -> None:
@@ -383,7 +383,7 @@ def test_straight_track_seen_by_a_portrait_camera_is_solved(
     (hypothesis,) = solve_one(visible_track(road_poses(heading_deg), camera, R, t), camera).hypotheses
     assert hypothesis.solver == solver
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-6
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-4)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-4)
 
 
 @settings(max_examples=12, deadline=None)
@@ -409,7 +409,7 @@ def test_tilted_camera_on_a_straight_track_is_close_or_rejected(
     result = solve_one(MatchedTrack(1, track.stamps, noisy, track.poses), camera)
     for hypothesis in result.hypotheses:
         assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < math.radians(2.0)
-        assert np.linalg.norm(hypothesis.camera_center - CAMERA_CENTER) < 1.0
+        assert np.linalg.norm(hypothesis.camera_centre - CAMERA_CENTRE) < 1.0
     assert len(result.hypotheses) + len(result.rejected) == 1
 
 
@@ -551,12 +551,12 @@ def test_match_tracks_with_empty_trajectory() -> None:
     assert match_tracks([image_track(1, 0, 5)], empty, AssociationParams()) == []
 
 
-def test_camera_center_property_matches_camera_module() -> None:
+def test_camera_centre_property_matches_camera_module() -> None:
     camera = make_camera()
     R, t = true_pose()
     (hypothesis,) = solve_one(exact_track(curved_poses(), camera, R, t), camera).hypotheses
     np.testing.assert_allclose(
-        hypothesis.camera_center, camera_center(hypothesis.R_cam_from_local, hypothesis.t_cam_from_local)
+        hypothesis.camera_centre, camera_centre(hypothesis.R_cam_from_local, hypothesis.t_cam_from_local)
     )
 
 

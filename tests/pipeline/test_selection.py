@@ -11,7 +11,7 @@ import pytest
 from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     camera_rotation_from_view,
     project_points,
     rotation_from_rvec,
@@ -55,7 +55,7 @@ def moved(pose: Pose, shift_m: float, angle_deg: float) -> Pose:
     """The pose turned by angle_deg about the vertical and its centre moved north by shift_m."""
     R, t = pose
     R_new = R @ rotation_from_rvec(np.array([0.0, 0.0, math.radians(angle_deg)])).T
-    centre = camera_center(R, t) + np.array([0.0, shift_m, 0.0])
+    centre = camera_centre(R, t) + np.array([0.0, shift_m, 0.0])
     return R_new, -R_new @ centre
 
 
@@ -123,7 +123,7 @@ def hypothesis(track_id: int, pose: Pose) -> Hypothesis:
 
 
 def pose_error(candidate: Candidate, pose: Pose) -> float:
-    return float(np.linalg.norm(candidate.whole_box.camera_center - camera_center(*pose)))
+    return float(np.linalg.norm(candidate.whole_box.camera_centre - camera_centre(*pose)))
 
 
 def relocated(candidate: Candidate, pose: Pose, track_ids: tuple[int, ...]) -> Candidate:
@@ -132,7 +132,7 @@ def relocated(candidate: Candidate, pose: Pose, track_ids: tuple[int, ...]) -> C
         candidate.whole_box,
         R_cam_from_local=pose[0],
         t_cam_from_local=pose[1],
-        camera_center=camera_center(*pose),
+        camera_centre=camera_centre(*pose),
     )
     return replace(candidate, whole_box=whole_box, track_ids=track_ids)
 

@@ -172,7 +172,7 @@ def test_coarse_hypotheses_are_regrouped_after_refinement() -> None:
     chosen = outcome.chosen.whole_box
     origin = np.array(outcome.result.frame.origin)
     truth_centre = np.asarray(truth.camera_position_utm) - origin
-    assert float(np.linalg.norm(chosen.camera_center - truth_centre)) < 0.3
+    assert float(np.linalg.norm(chosen.camera_centre - truth_centre)) < 0.3
     assert math.degrees(rotation_angle_rad(chosen.R_cam_from_local, np.asarray(truth.R))) < 0.3
     # Its two drive-pasts disagree (leaving either out moves the pose 0.2 m / 0.35 deg, 17 x the fit's
     # rotation std; measured): since the final fit checks the traversals against each other and its std
