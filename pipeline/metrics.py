@@ -21,18 +21,14 @@ from pipeline.arrays import (
     FloatArray,
     IntArray,
     Mask,
-    Pixels,
-    Points3,
     Rotation,
     Stamps,
     Vec3,
     as_float_array,
-    check_shape,
 )
 from pipeline.camera import (
     CameraModel,
     camera_centre,
-    project_points,
     quaternion_wxyz_from_rotation,
     rotation_angle_rad,
     undistort_pixels,
@@ -40,10 +36,9 @@ from pipeline.camera import (
 from pipeline.errors import InputError, ShapeError
 from pipeline.frames import UtmFrame
 from pipeline.ground import GroundPlaneFit
+from pipeline.tracking import touches_border
 from schemas.files import GroundTruth
 from schemas.results import CalibrationResult, CameraPosition, Provenance, ReferenceFrame, Verdict
-
-CORNER_NAMES = ("rear-right", "front-right", "front-left", "rear-left")
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,18 +117,6 @@ def _footprint_planes(footprints: Corners) -> tuple[FloatArray, FloatArray]:
     normal = np.where(normal[:, 2:3] < 0.0, -normal, normal)
     offset = np.einsum("nj,nj->n", footprints.mean(axis=1), normal)
     return normal, offset
-
-
-def touches_border(boxes: Boxes, width: int, height: int, margin_px: float = 3.0) -> Mask:
-    """Boxes (N, 4) with any edge within `margin_px` of the image border (clipped by the detector): (N,)."""
-    check_shape(boxes, "N,4", name="boxes")
-    return np.asarray(
-        (boxes[:, 0] <= margin_px)
-        | (boxes[:, 1] <= margin_px)
-        | (boxes[:, 2] >= width - margin_px)
-        | (boxes[:, 3] >= height - margin_px),
-        dtype=np.bool_,
-    )
 
 
 def back_project_bottom_edges(
@@ -253,30 +236,6 @@ def delta_p(
         centre = camera_centre(R, t)
         distance[valid] = np.linalg.norm(footprints[valid][rows, best] - centre, axis=1)
     return BoxErrors(delta, distance, corner, valid, clipped, misses)
-
-
-def reprojection_rmse(
-    points_local: Points3,
-    pixels: Pixels,
-    R_cam_from_local: Rotation,
-    t_cam_from_local: Vec3,
-    camera: CameraModel,
-) -> float:
-    """Root mean square pixel distance between projected points (N, 3, local) and observed pixels (N, 2).
-
-    inf when any point is behind the camera (such a calibration does not explain the observation at all);
-    NaN for N = 0.
-    """
-    check_shape(points_local, "N,3", name="points_local")
-    check_shape(pixels, "N,2", name="pixels")
-    if len(points_local) != len(pixels):
-        raise ShapeError(f"pixels: expected {len(points_local)} rows like points_local, got {len(pixels)}")
-    if len(points_local) == 0:
-        return math.nan
-    projected, depth = project_points(points_local, R_cam_from_local, t_cam_from_local, camera)
-    if np.any(depth <= 0.0):
-        return math.inf
-    return float(np.sqrt(np.mean(np.sum((projected - pixels) ** 2, axis=1))))
 
 
 @dataclass(frozen=True, slots=True)

@@ -21,7 +21,6 @@ from pipeline.metrics import (
     delta_p,
     evaluate_against_ground_truth,
     format_evaluation,
-    reprojection_rmse,
     result_from_ground_truth,
 )
 from pipeline.vehicle import body_corners, footprint_corners
@@ -119,15 +118,6 @@ def test_explicit_ground_plane_measures_in_that_plane() -> None:
     assert delta_p(boxes, footprint, R, t, CAMERA, ground=flat).delta_p_m[0] == pytest.approx(0.25, abs=1e-12)
     # Default: the footprint's own plane z = 0.3 (9.7 m below the camera): the line is x = -0.97.
     assert delta_p(boxes, footprint, R, t, CAMERA).delta_p_m[0] == pytest.approx(0.28, abs=1e-12)
-
-
-def test_reprojection_rmse_hand_value() -> None:
-    R, t = extrinsic((0.0, 0.0, 6.0), 0.0, math.radians(30.0))
-    points = np.array([[10.0, 1.0, 0.0], [20.0, -2.0, 0.5], [15.0, 0.0, 1.0]])
-    pixels, _ = project_points(points, R, t, CAMERA)
-    assert reprojection_rmse(points, pixels + np.array([3.0, 4.0]), R, t, CAMERA) == pytest.approx(5.0)
-    behind = np.array([[-10.0, 0.0, 0.0]])
-    assert reprojection_rmse(behind, np.zeros((1, 2)), R, t, CAMERA) == math.inf
 
 
 # --- ground-truth floor and perturbations ----------------------------------------------------------------
