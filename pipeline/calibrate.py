@@ -247,15 +247,20 @@ def calibrate(
             replace(inputs, time_offset_ns=estimate), params, rng, progress, created_at_ns, map_fn, scan=False
         )
         assert not isinstance(second, ClockScan)
-        note = StageReport(
-            "time offset",
-            1,
-            0,
-            (
-                f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
-                f"{inputs.time_offset_ns / 1e6:.1f} ms: every stage ran again on the corrected clock",
-            ),
+        said = (
+            f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
+            f"{inputs.time_offset_ns / 1e6:.1f} ms: every stage ran again on the corrected clock"
         )
+        if second.chosen is None and first.chosen is not None:
+            # Single-track hypotheses are coarse, and on the corrected clock they may group nothing where
+            # they grouped on the first; the first pass's final fit estimated the offset with the pose, so
+            # its result stands (with its own gates) rather than a refusal for want of a group.
+            why = second.result.verdict.reasons[0] if second.result.verdict.reasons else "refused"
+            note = StageReport(
+                "time offset", 0, 1, (f"{said}, where it found no pose ({why}): the first pass stands",)
+            )
+            return replace(first, stages=(note, *first.stages))
+        note = StageReport("time offset", 1, 0, (said,))
         return replace(second, stages=(*notes, note, *second.stages))
 
 
