@@ -234,18 +234,16 @@ def _calibrate(
         result = refused_result(inputs, params, origin, created_at_ns, [reason])
         return CalibrationOutcome(result, tuple(report), (), None, diagnostics)
 
-    if not inputs.poses:
-        return refuse("no calibration-vehicle poses in the data window")
-    if not inputs.detections:
-        return refuse("no detections from this camera in the data window")
+    if not inputs.poses or not inputs.detections:
+        return refuse(
+            "no calibration-vehicle poses in the data window"
+            if not inputs.poses
+            else "no detections from this camera in the data window"
+        )
 
     say("association", 0.0)  # poses into the local frame, on the camera clock
     origin = _local_origin(inputs.poses, inputs.crs)
-    association = AssociationParams(
-        max_pose_gap_ns=params.association.max_pose_gap_ns,
-        max_extrapolation_ns=params.association.max_extrapolation_ns,
-        time_offset_ns=inputs.time_offset_ns,
-    )
+    association = replace(params.association, time_offset_ns=inputs.time_offset_ns)
     # CAMs carry no pitch: take it from the path's height profile (attitude.py).
     trajectory = with_path_pitch(make_trajectory(inputs.poses, origin, association))
     diagnostics = CalibrationDiagnostics(origin, trajectory)
@@ -274,14 +272,8 @@ def _calibrate(
     diagnostics = replace(diagnostics, hypotheses=hypothesis_set.hypotheses)
 
     say("grouping", 0.45)
-    scene = Scene(
-        {m.track_id: m for m in matched},
-        trajectory,
-        camera,
-        inputs.vehicle,
-        params.refinement,
-        params.selection,
-    )
+    by_id = {m.track_id: m for m in matched}
+    scene = Scene(by_id, trajectory, camera, inputs.vehicle, params.refinement, params.selection)
     grouping = group_hypotheses(hypothesis_set, scene.tracks, frames, camera, inputs.vehicle, params.grouping)
     report.append(_grouping_report(grouping))
     groups = [g.track_ids for g in grouping.groups]
