@@ -284,7 +284,7 @@ def _choices(values: Sequence[str]) -> str:
 
 
 def write_result(result: CalibrationResult, path: Path) -> Path:
-    """Write the result JSON atomically and durably (daemon.atomic): never a half-written file."""
+    """Write the result JSON atomically and durably (schemas.atomic): never a half-written file."""
     path = Path(path)
     try:
         write_atomic(path, (result.model_dump_json(indent=2) + "\n").encode("utf-8"))

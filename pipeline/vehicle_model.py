@@ -23,7 +23,7 @@ So the pose is fitted jointly with the unknowns it would otherwise absorb, each 
 Box size changes tenfold along a drive-past, so metric shape and pixel convention separate; what the data
 cannot separate from the pose shows up in the pose's marginal covariance, the block of the full inverse with
 the nuisance parameters included (their priors keep it finite). Whether the template, the convention and
-the time shift are needed at all is decided in calibrate._final_fit (cross-validation, significance).
+the time shift are needed at all is decided in final_fit.final_fit (cross-validation, significance).
 
 Uncertainty: detector errors are correlated over consecutive frames (a box edge stays a few pixels off for
 a second) and GNSS errors drift, so independent-residual least squares overstates the information many times.
