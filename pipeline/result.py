@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.metadata
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,20 +44,7 @@ def refused_result(
     created_at_ns: int,
     reasons: list[str],
 ) -> CalibrationResult:
-    frame = ReferenceFrame(
-        crs=inputs.crs, origin=(origin.x, origin.y, origin.z) if origin else (0.0, 0.0, 0.0)
-    )
-    return CalibrationResult(
-        schema_version=SCHEMA_VERSION,
-        rsu_id=inputs.rsu_id,
-        camera_id=inputs.camera_id,
-        result_id=result_id(inputs, created_at_ns),
-        created_at_ns=created_at_ns,
-        frame=frame,
-        intrinsics=inputs.intrinsics,
-        verdict=Verdict(status="refused", reasons=reasons),
-        provenance=provenance(inputs, params),
-    )
+    return _result(inputs, params, origin, created_at_ns, Verdict(status="refused", reasons=reasons))
 
 
 def calibration_result(
@@ -101,13 +88,12 @@ def calibration_result(
         if finite_cov
         else None
     )
-    return CalibrationResult(
-        schema_version=SCHEMA_VERSION,
-        rsu_id=inputs.rsu_id,
-        camera_id=inputs.camera_id,
-        result_id=result_id(inputs, created_at_ns),
-        created_at_ns=created_at_ns,
-        frame=ReferenceFrame(crs=inputs.crs, origin=(origin.x, origin.y, origin.z)),
+    return _result(
+        inputs,
+        params,
+        origin,
+        created_at_ns,
+        verdict,
         R=tuple(tuple(float(v) for v in row) for row in R),
         t=(float(t[0]), float(t[1]), float(t[2])),
         camera_position=CameraPosition(
@@ -117,17 +103,40 @@ def calibration_result(
             alt=alt,
         ),
         orientation_wxyz=tuple(float(v) for v in quaternion_wxyz_from_rotation(R.T)),
-        intrinsics=inputs.intrinsics,
         ground_plane=GroundPlane(
             normal=(float(ground.normal[0]), float(ground.normal[1]), float(ground.normal[2])),
             offset=float(ground.offset),
         ),
         uncertainty=uncertainty,
         quality=quality,
-        verdict=verdict,
-        provenance=provenance(inputs, params),
         time_offset_ns=final.time_offset_ns(inputs.time_offset_ns),
         time_offset_std_ns=_finite(final.fit.time_shift_std_s * 1e9),
+    )
+
+
+def _result(
+    inputs: CalibrationInputs,
+    params: PipelineParams,
+    origin: LocalOrigin | None,
+    created_at_ns: int,
+    verdict: Verdict,
+    **pose: Any,
+) -> CalibrationResult:
+    """What every result carries (who, when, the frame, the intrinsics, the verdict, the provenance), plus
+    `pose`: the fields of an accepted or gated pose (R, t, position, uncertainty, quality, ...)."""
+    return CalibrationResult(
+        schema_version=SCHEMA_VERSION,
+        rsu_id=inputs.rsu_id,
+        camera_id=inputs.camera_id,
+        result_id=result_id(inputs, created_at_ns),
+        created_at_ns=created_at_ns,
+        frame=ReferenceFrame(
+            crs=inputs.crs, origin=(origin.x, origin.y, origin.z) if origin else (0.0, 0.0, 0.0)
+        ),
+        intrinsics=inputs.intrinsics,
+        verdict=verdict,
+        provenance=provenance(inputs, params),
+        **pose,
     )
 
 
