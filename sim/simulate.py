@@ -292,7 +292,7 @@ def _v2x_messages(
     east = np.array([p.x for p in poses])
     north = np.array([p.y for p in poses])
     lat, lon = frame.to_wgs84(east, north)
-    heading = frame.true_heading_deg(east, north, np.array([p.yaw for p in poses]))
+    heading_deg = frame.true_heading_deg(east, north, np.array([p.yaw for p in poses]))
     accuracies = V2xAccuracies(horizontal_m=max(accuracy_m, 0.02), vertical_m=max(accuracy_m, 0.02))
     return [
         V2xPosition(
@@ -309,7 +309,7 @@ def _v2x_messages(
             width=calib_vehicle.width,
             accuracies=accuracies,
         )
-        for p, la, lo, h, v in zip(poses, lat, lon, heading, speed, strict=True)
+        for p, la, lo, h, v in zip(poses, lat, lon, heading_deg, speed, strict=True)
     ]
 
 
@@ -463,7 +463,7 @@ def _cam_broadcasts(
     east = track.position[sent, 0] + origin.x
     north = track.position[sent, 1] + origin.y
     lat, lon = geo.to_wgs84(east, north)
-    heading = geo.true_heading_deg(east, north, track.yaw[sent])
+    heading_deg = geo.true_heading_deg(east, north, track.yaw[sent])
     stamps = start_ns + np.round(fix_t[sent] * 1e9).astype(np.int64) + config.pose.clock_offset_ns
     return [
         V2xPosition(
@@ -483,7 +483,7 @@ def _cam_broadcasts(
             lat,
             lon,
             track.position[sent, 2],
-            heading,
+            heading_deg,
             track.speed_mps[sent],
             track.horizontal_std_m[sent],
             track.vertical_std_m[sent],
