@@ -182,7 +182,16 @@ def calibrate(
                      "again on that clock",),
                 ),
             )  # fmt: skip
-            scanned = _calibrate(inputs, params, rng, progress, created_at_ns, map_fn, scan=False)
+            scanned = _calibrate(
+                inputs,
+                params,
+                rng,
+                progress,
+                created_at_ns,
+                map_fn,
+                scan=False,
+                hypotheses=scanned.hypotheses,
+            )
         assert not isinstance(scanned, ClockScan)
         first = replace(scanned, stages=(*notes, *scanned.stages))
         estimate = first.result.time_offset_ns
@@ -221,10 +230,12 @@ def _calibrate(
     created_at_ns: int,
     map_fn: MapFn,
     scan: bool,
+    hypotheses: Sequence[Hypothesis] | None = None,
 ) -> CalibrationOutcome | ClockScan:
     """One pass of every stage on the clock `inputs.time_offset_ns`, in order; each appends its report, a
     stage that leaves nothing to go on refuses. With `scan`, a pass whose grouping finds nothing searches
-    other clocks and returns the best (pipeline.clock) for the caller to run again on."""
+    other clocks and returns the best (pipeline.clock) for the caller to run again on; that run starts from
+    the scan's `hypotheses`, moved to the new clock, instead of fitting new ones."""
     report: list[StageReport] = []
     say = progress or (lambda _stage, _fraction: None)
     camera = CameraModel.from_intrinsics(inputs.intrinsics)
@@ -263,10 +274,10 @@ def _calibrate(
         return refuse(f"ground plane: {err}", origin)
 
     say("hypotheses", 0.25)
-    hypothesis_set = create_hypotheses(
-        matched, camera, inputs.vehicle, ground, params.hypotheses, rng, trajectory=trajectory, map_fn=map_fn
+    hypothesis_set, said = _hypotheses(
+        matched, ground, trajectory, camera, inputs, params, rng, map_fn, hypotheses
     )
-    report.append(_hypotheses_report(hypothesis_set))
+    report.append(said)
     if not hypothesis_set.hypotheses:
         return refuse("no track gave a plausible camera pose (EPnP + RANSAC)", origin)
     diagnostics = replace(diagnostics, hypotheses=hypothesis_set.hypotheses)
@@ -367,6 +378,28 @@ def _association_report(matched: Sequence[MatchedTrack], track_set: TrackSet) ->
         len(track_set.tracks) - len(matched),
         (f"{len(matched)} tracks overlap the vehicle's poses in time",),
     )
+
+
+def _hypotheses(
+    matched: Sequence[MatchedTrack],
+    ground: GroundPlaneFit,
+    trajectory: Trajectory,
+    camera: CameraModel,
+    inputs: CalibrationInputs,
+    params: PipelineParams,
+    rng: np.random.Generator,
+    map_fn: MapFn,
+    given: Sequence[Hypothesis] | None,
+) -> tuple[HypothesisSet, StageReport]:
+    """One hypothesis per track (EPnP + RANSAC, the straight-track solver), or the `given` ones (the clock
+    scan's, moved to this clock and refitted)."""
+    if given is not None:
+        note = "the clock scan's hypotheses, moved to this clock and refitted"
+        return HypothesisSet(tuple(given), {}), StageReport("hypotheses", len(given), 0, (note,))
+    found = create_hypotheses(
+        matched, camera, inputs.vehicle, ground, params.hypotheses, rng, trajectory=trajectory, map_fn=map_fn
+    )
+    return found, _hypotheses_report(found)
 
 
 def _hypotheses_report(hypothesis_set: HypothesisSet) -> StageReport:

@@ -110,7 +110,7 @@ def calibration_result(
         uncertainty=uncertainty,
         quality=quality,
         time_offset_ns=final.time_offset_ns(inputs.time_offset_ns),
-        time_offset_std_ns=_finite(final.fit.time_shift_std_s * 1e9),
+        time_offset_std_ns=_finite(final.time_offset_std_s * 1e9),
     )
 
 
