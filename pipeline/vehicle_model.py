@@ -44,7 +44,7 @@ from scipy.optimize import least_squares, nnls
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, Stamps, Vec3
 from pipeline.association import MatchedTrack, Trajectory, select_rows
-from pipeline.camera import CameraModel, camera_center, rvec_from_rotation
+from pipeline.camera import CameraModel, camera_center, rotation_from_ypr, rvec_from_rotation
 from pipeline.errors import DegenerateGeometry
 from pipeline.refinement import (
     _camera_points,
@@ -55,7 +55,7 @@ from pipeline.refinement import (
     _project_jacobian,
     _robust_weights,
 )
-from pipeline.vehicle import body_points_to_world
+from pipeline.vehicle import body_points_to_world, rotated_body_points
 from schemas.common import VehicleProfile
 
 _POSE, _DELTA, _SHAPE, _BIAS = slice(0, 6), 6, slice(7, 13), slice(13, 18)
@@ -334,13 +334,38 @@ class _Model:
         n, k = world.shape[:2]
         cam = _camera_points(world.reshape(-1, 3), R, C)
         uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
-        corner = np.column_stack(
-            [uv[:, :, 0].argmin(1), uv[:, :, 1].argmin(1), uv[:, :, 0].argmax(1), uv[:, :, 1].argmax(1)]
-        )
-        rows = np.arange(n)[:, None]
-        axis = np.array([0, 1, 0, 1])
-        raw = uv[rows, corner, axis]
+        raw, corner = _tight_boxes(uv)
         return raw, cam.reshape(n, k, 3), corner, R
+
+    def _raw_and_shape_steps(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation, FloatArray]:
+        """`raw(x)`, plus the raw boxes (6, N, 4) with each shape parameter in turn stepped by shape_step
+        (the forward differences of the template). The poses, their rotations and the points a step does
+        not move are shared: one projection of the 12 points and of the moved ones (20) for all seven."""
+        R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
+        poses = self.sampler.at(self.data.t_s - x[_DELTA])
+        points = template_points(x[_SHAPE], self.vehicle)
+        point_sets, moved = [points], []
+        for j in range(_SHAPE.start, _SHAPE.stop):
+            xp = x.copy()
+            xp[j] += self.params.shape_step
+            stepped = template_points(xp[_SHAPE], self.vehicle)
+            moved.append(np.any(stepped != points, axis=1))
+            point_sets.append(stepped[moved[-1]])
+        R_body = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
+        world = rotated_body_points(R_body, poses, np.vstack(point_sets), self.vehicle)
+        n, k = world.shape[:2]
+        cam = _camera_points(world.reshape(-1, 3), R, C)
+        uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
+        base = len(points)
+        stepped_uv = np.broadcast_to(uv[:, :base], (len(moved), n, base, 2)).copy()
+        start = base
+        for j, rows in enumerate(moved):
+            stop = start + int(rows.sum())
+            stepped_uv[j][:, rows] = uv[:, start:stop]
+            start = stop
+        raw, corner = _tight_boxes(uv[:, :base])
+        stepped_raw, _ = _tight_boxes(stepped_uv.reshape(-1, base, 2))
+        return raw, cam.reshape(n, k, 3)[:, :base], corner, R, stepped_raw.reshape(len(moved), n, 4)
 
     @staticmethod
     def biased(raw: Boxes, bias: FloatArray) -> Boxes:
@@ -361,7 +386,7 @@ class _Model:
     def _evaluate(self, x: FloatArray) -> None:
         if "x" in self._cache and np.array_equal(self._cache["x"], x):
             return
-        raw, cam, corner, R = self.raw(x)
+        raw, cam, corner, R, shape_raw = self._raw_and_shape_steps(x)
         model = self.biased(raw, x[_BIAS])
         bi, ei = self.box_index, self.edge_index
         residual = model[bi, ei] - self.data.boxes[bi, ei]
@@ -382,12 +407,13 @@ class _Model:
         d_model = (1 + s / 2) * d_raw - (s / 2) * d_raw[:, opposite, :]
         J[:, _POSE] = d_model[bi, ei]
         # Time shift and template: forward differences of the raw boxes.
-        for j in range(_DELTA, _SHAPE.stop):
-            step = self.params.shape_step
-            xp = x.copy()
-            xp[j] += step
-            raw_p, _, _, _ = self.raw(xp)
-            J[:, j] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
+        step = self.params.shape_step
+        xp = x.copy()
+        xp[_DELTA] += step
+        raw_p, _, _, _ = self.raw(xp)
+        J[:, _DELTA] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
+        for j, raw_p in enumerate(shape_raw):
+            J[:, _SHAPE.start + j] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
         # Bias: analytic.
         J[:, _BIAS.start] = ((raw - raw[:, opposite]) / 2.0)[bi, ei]
         J[:, _BIAS.start + 1 :] = _OFFSET_FROM_BIAS[ei]
@@ -490,6 +516,17 @@ def _assemble(
         edge_fraction=model.edge_fraction.copy(),
         rho=model.rho,
     )
+
+
+def _tight_boxes(uv: FloatArray) -> tuple[Boxes, IntArray]:
+    """Projected points (N, K, 2) -> their tight boxes (N, 4) x1, y1, x2, y2 and the index of the point
+    forming each edge (N, 4)."""
+    corner = np.column_stack(
+        [uv[:, :, 0].argmin(1), uv[:, :, 1].argmin(1), uv[:, :, 0].argmax(1), uv[:, :, 1].argmax(1)]
+    )
+    rows = np.arange(len(uv))[:, None]
+    axis = np.array([0, 1, 0, 1])
+    return uv[rows, corner, axis], corner
 
 
 def _lag_one_correlation(
