@@ -197,7 +197,14 @@ class PoseSampler:
         return np.asarray((stamps - self.t0).astype(np.float64) / 1e9, dtype=np.float64)
 
     def at(self, t_s: FloatArray) -> FloatArray:
-        return np.column_stack([np.interp(t_s, self.times, self.poses[:, k]) for k in range(6)])
+        """np.interp of each column, held at the ends (one search for all six: the same arithmetic)."""
+        times, poses = self.times, self.poses
+        j = np.clip(np.searchsorted(times, t_s, side="right") - 1, 0, len(times) - 2)
+        slope = (poses[j + 1] - poses[j]) / (times[j + 1] - times[j])[:, None]
+        out = slope * (t_s - times[j])[:, None] + poses[j]
+        out[t_s <= times[0]] = poses[0]
+        out[t_s >= times[-1]] = poses[-1]
+        return np.asarray(out, dtype=np.float64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -286,6 +293,7 @@ class _Model:
         self.prior_jacobian = np.diag(self.prior_weight)[self.has_prior]  # constant: the priors are linear
         self.box_index, self.edge_index = np.nonzero(data.used)
         self._cache: dict[str, FloatArray] = {}
+        self._state: tuple[FloatArray, ...] = ()  # what the Jacobian at the cached x reuses
         self.data_scale = np.ones(len(self.box_index))  # px per unit, per data row
         self.f_scale = 1.0  # where the robust loss bends, in data-row units
         self.sigma_px = params.f_scale_px
@@ -337,35 +345,33 @@ class _Model:
         raw, corner = _tight_boxes(uv)
         return raw, cam.reshape(n, k, 3), corner, R
 
-    def _raw_and_shape_steps(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation, FloatArray]:
-        """`raw(x)`, plus the raw boxes (6, N, 4) with each shape parameter in turn stepped by shape_step
-        (the forward differences of the template). The poses, their rotations and the points a step does
-        not move are shared: one projection of the 12 points and of the moved ones (20) for all seven."""
-        R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
-        poses = self.sampler.at(self.data.t_s - x[_DELTA])
+    def _shape_steps(
+        self, x: FloatArray, poses: FloatArray, R_body: FloatArray, uv: FloatArray
+    ) -> FloatArray:
+        """The raw boxes (6, N, 4) with each shape parameter in turn stepped by shape_step (the forward
+        differences of the template), from the poses, body rotations and projected template points (N, 12,
+        2) at x: only the points a step moves (20 of the 6 x 12) are placed and projected again."""
         points = template_points(x[_SHAPE], self.vehicle)
-        point_sets, moved = [points], []
+        point_sets, moved = [], []
         for j in range(_SHAPE.start, _SHAPE.stop):
             xp = x.copy()
             xp[j] += self.params.shape_step
             stepped = template_points(xp[_SHAPE], self.vehicle)
             moved.append(np.any(stepped != points, axis=1))
             point_sets.append(stepped[moved[-1]])
-        R_body = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
+        R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
         world = rotated_body_points(R_body, poses, np.vstack(point_sets), self.vehicle)
         n, k = world.shape[:2]
         cam = _camera_points(world.reshape(-1, 3), R, C)
-        uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
-        base = len(points)
-        stepped_uv = np.broadcast_to(uv[:, :base], (len(moved), n, base, 2)).copy()
-        start = base
+        moved_uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
+        stepped_uv = np.broadcast_to(uv, (len(moved), *uv.shape)).copy()
+        start = 0
         for j, rows in enumerate(moved):
             stop = start + int(rows.sum())
-            stepped_uv[j][:, rows] = uv[:, start:stop]
+            stepped_uv[j][:, rows] = moved_uv[:, start:stop]
             start = stop
-        raw, corner = _tight_boxes(uv[:, :base])
-        stepped_raw, _ = _tight_boxes(stepped_uv.reshape(-1, base, 2))
-        return raw, cam.reshape(n, k, 3)[:, :base], corner, R, stepped_raw.reshape(len(moved), n, 4)
+        stepped_raw, _ = _tight_boxes(stepped_uv.reshape(-1, *uv.shape[1:]))
+        return stepped_raw.reshape(len(moved), n, 4)
 
     @staticmethod
     def biased(raw: Boxes, bias: FloatArray) -> Boxes:
@@ -384,12 +390,36 @@ class _Model:
         )
 
     def _evaluate(self, x: FloatArray) -> None:
+        """The residuals at x (the Jacobian only when asked for: the solver does not need it at the points
+        whose step it rejects)."""
         if "x" in self._cache and np.array_equal(self._cache["x"], x):
             return
-        raw, cam, corner, R, shape_raw = self._raw_and_shape_steps(x)
+        R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
+        poses = self.sampler.at(self.data.t_s - x[_DELTA])
+        R_body = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
+        world = rotated_body_points(R_body, poses, template_points(x[_SHAPE], self.vehicle), self.vehicle)
+        n, k = world.shape[:2]
+        cam = _camera_points(world.reshape(-1, 3), R, C)
+        uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
+        raw, corner = _tight_boxes(uv)
         model = self.biased(raw, x[_BIAS])
         bi, ei = self.box_index, self.edge_index
         residual = model[bi, ei] - self.data.boxes[bi, ei]
+        prior_r = ((x - self.mean) * self.prior_weight)[self.has_prior]
+        self._cache = {
+            "x": x.copy(),
+            "r": np.concatenate([residual / self.data_scale, prior_r]),
+            "model": model,
+        }
+        self._state = (raw, cam.reshape(n, k, 3), corner, R, poses, R_body, uv)
+
+    def _evaluate_jacobian(self, x: FloatArray) -> None:
+        self._evaluate(x)
+        if "J" in self._cache:
+            return
+        raw, cam, corner, R, poses, R_body, uv = self._state
+        model = self._cache["model"]
+        bi, ei = self.box_index, self.edge_index
         m = len(bi)
         J = np.zeros((m, N_PARAMS))
         # Pose: the edge-forming point's projection (analytic), through the bias transform.
@@ -412,26 +442,19 @@ class _Model:
         xp[_DELTA] += step
         raw_p, _, _, _ = self.raw(xp)
         J[:, _DELTA] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
-        for j, raw_p in enumerate(shape_raw):
+        for j, raw_p in enumerate(self._shape_steps(x, poses, R_body, uv)):
             J[:, _SHAPE.start + j] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
         # Bias: analytic.
         J[:, _BIAS.start] = ((raw - raw[:, opposite]) / 2.0)[bi, ei]
         J[:, _BIAS.start + 1 :] = _OFFSET_FROM_BIAS[ei]
-        prior_r = ((x - self.mean) * self.prior_weight)[self.has_prior]
-        prior_J = self.prior_jacobian
-        self._cache = {
-            "x": x.copy(),
-            "r": np.concatenate([residual / self.data_scale, prior_r]),
-            "J": np.vstack([J / self.data_scale[:, None], prior_J]),
-            "model": model,
-        }
+        self._cache["J"] = np.vstack([J / self.data_scale[:, None], self.prior_jacobian])
 
     def residuals(self, x: FloatArray) -> FloatArray:
         self._evaluate(x)
         return self._cache["r"]
 
     def jacobian(self, x: FloatArray) -> FloatArray:
-        self._evaluate(x)
+        self._evaluate_jacobian(x)
         return self._cache["J"]
 
     @property
