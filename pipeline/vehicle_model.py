@@ -193,6 +193,18 @@ class PoseSampler:
         poses[:, 3] = np.unwrap(poses[:, 3])
         self.poses = poses
 
+    @staticmethod
+    def of(trajectory: Trajectory) -> PoseSampler:
+        """The sampler of `trajectory`, reused while the same trajectory object is asked for again (the
+        final fit samples one trajectory for hundreds of tracks and fits: unwrapping it each time cost more
+        than the fits' sampling)."""
+        last = _last_sampler
+        if last is not None and last[0] is trajectory:
+            return last[1]
+        sampler = PoseSampler(trajectory)
+        _remember_sampler((trajectory, sampler))
+        return sampler
+
     def seconds(self, stamps: Stamps) -> FloatArray:
         return np.asarray((stamps - self.t0).astype(np.float64) / 1e9, dtype=np.float64)
 
@@ -205,6 +217,16 @@ class PoseSampler:
         out[t_s <= times[0]] = poses[0]
         out[t_s >= times[-1]] = poses[-1]
         return np.asarray(out, dtype=np.float64)
+
+
+# The last trajectory sampled and its sampler (PoseSampler.of); a strong reference, so `is` cannot match
+# a new object at a recycled address.
+_last_sampler: tuple[Trajectory, PoseSampler] | None = None
+
+
+def _remember_sampler(entry: tuple[Trajectory, PoseSampler]) -> None:
+    global _last_sampler
+    _last_sampler = entry
 
 
 @dataclass(frozen=True, slots=True)
@@ -226,7 +248,7 @@ def fit_vehicle_model(
     params: ModelParams,
 ) -> ModelFit:
     """Fit pose, time shift, template and detector bias to the tracks' boxes, from the given pose."""
-    sampler = PoseSampler(trajectory)
+    sampler = PoseSampler.of(trajectory)
     if not tracks or sum(len(t.boxes) for t in tracks) == 0:
         raise DegenerateGeometry("joint fit: no boxes")
     data = _data_of(tracks, sampler, camera, params)
@@ -293,7 +315,11 @@ class _Model:
         self.prior_jacobian = np.diag(self.prior_weight)[self.has_prior]  # constant: the priors are linear
         self.box_index, self.edge_index = np.nonzero(data.used)
         self._cache: dict[str, FloatArray] = {}
-        self._state: tuple[FloatArray, ...] = ()  # what the Jacobian at the cached x reuses
+        # What the Jacobian at the cached x reuses: raw boxes, camera points, edge corners, R, poses,
+        # body rotations, projected points.
+        self._state: (
+            tuple[Boxes, FloatArray, IntArray, Rotation, FloatArray, FloatArray, FloatArray] | None
+        ) = None
         self.data_scale = np.ones(len(self.box_index))  # px per unit, per data row
         self.f_scale = 1.0  # where the robust loss bends, in data-row units
         self.sigma_px = params.f_scale_px
@@ -417,6 +443,7 @@ class _Model:
         self._evaluate(x)
         if "J" in self._cache:
             return
+        assert self._state is not None
         raw, cam, corner, R, poses, R_body, uv = self._state
         model = self._cache["model"]
         bi, ei = self.box_index, self.edge_index
@@ -637,7 +664,7 @@ def model_footprints(
     fit: ModelFit, tracks: Sequence[MatchedTrack], trajectory: Trajectory, vehicle: VehicleProfile
 ) -> FloatArray:
     """The fitted template's lowest rectangle at every box (N, 4, 3), local frame, at its time shift."""
-    sampler = PoseSampler(trajectory)
+    sampler = PoseSampler.of(trajectory)
     stamps = np.concatenate([t.stamps for t in tracks])
     poses = sampler.at(sampler.seconds(stamps) - fit.time_shift_s)
     return body_points_to_world(poses, fit.footprint_body_frame(vehicle), vehicle)
@@ -842,7 +869,7 @@ def _model_of(
 ) -> tuple[_Model, FloatArray]:
     """The model of a fit (its pose, shift, template and convention) on other boxes, and its parameter
     vector there (pose part zero: the model is built around the fit's pose)."""
-    sampler = PoseSampler(trajectory)
+    sampler = PoseSampler.of(trajectory)
     data = _data_of(tracks, sampler, camera, params)
     x = np.zeros(N_PARAMS)
     x[_DELTA], x[_SHAPE], x[_BIAS] = fit.time_shift_s, fit.shape, fit.bias
