@@ -38,6 +38,7 @@ from pipeline.association import (
 )
 from pipeline.attitude import with_path_pitch
 from pipeline.camera import CameraModel, quaternion_wxyz_from_rotation, rotation_angle_rad
+from pipeline.clock import ClockParams, ClockScan, scan_clock
 from pipeline.errors import DegenerateGeometry
 from pipeline.frames import UtmFrame
 from pipeline.ground import GroundPlaneFit, fit_ground_plane
@@ -138,6 +139,7 @@ class PipelineParams:
     # A first pass whose estimated time offset differs from the assumed one by more than this reruns every
     # stage on the corrected clock (30 ms: 0.3 m at 10 m/s, where hypotheses start to scatter).
     repeat_offset_ns: int = 30_000_000
+    clock: ClockParams = field(default_factory=ClockParams)
     # The template and detector convention replace the cuboid only when their cross-validated misfit is
     # below this share of the cuboid's (simpler wins ties).
     template_gain: float = 0.9
@@ -217,7 +219,23 @@ def calibrate(
     # 6 columns) and the worker threads only add hand-off cost; on a busy 2-core RSU a (4000, 6) SVD took
     # 84 ms with OpenBLAS's 2 threads against 1.4 ms with one. The previous limits are restored on return.
     with threadpool_limits(limits=1):
-        first = _calibrate(inputs, params, rng, progress, created_at_ns, map_fn)
+        scanned = _calibrate(inputs, params, rng, progress, created_at_ns, map_fn, scan=True)
+        notes: tuple[StageReport, ...] = ()
+        if isinstance(scanned, ClockScan):
+            # No two drive-pasts agreed on the assumed clock, but they do on another (pipeline.clock).
+            inputs = replace(inputs, time_offset_ns=inputs.time_offset_ns - round(scanned.shift_s * 1e9))
+            notes = (
+                StageReport(
+                    "clock scan",
+                    len(scanned.track_ids),
+                    0,
+                    (f"the assumed clock grouped no two drive-pasts; {scanned.describe()}: every stage ran "
+                     "again on that clock",),
+                ),
+            )  # fmt: skip
+            scanned = _calibrate(inputs, params, rng, progress, created_at_ns, map_fn, scan=False)
+        assert not isinstance(scanned, ClockScan)
+        first = replace(scanned, stages=(*notes, *scanned.stages))
         estimate = first.result.time_offset_ns
         if estimate is None or abs(estimate - inputs.time_offset_ns) <= params.repeat_offset_ns:
             return first
@@ -226,18 +244,24 @@ def calibrate(
         # offset estimated, the whole pipeline runs once more on the corrected clock (a search wrapped around
         # the fit); the estimate is then the prior.
         second = _calibrate(
-            replace(inputs, time_offset_ns=estimate), params, rng, progress, created_at_ns, map_fn
+            replace(inputs, time_offset_ns=estimate), params, rng, progress, created_at_ns, map_fn, scan=False
         )
-        note = StageReport(
-            "time offset",
-            1,
-            0,
-            (
-                f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
-                f"{inputs.time_offset_ns / 1e6:.1f} ms: every stage ran again on the corrected clock",
-            ),
+        assert not isinstance(second, ClockScan)
+        said = (
+            f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
+            f"{inputs.time_offset_ns / 1e6:.1f} ms: every stage ran again on the corrected clock"
         )
-        return replace(second, stages=(note, *second.stages))
+        if second.chosen is None and first.chosen is not None:
+            # Single-track hypotheses are coarse, and on the corrected clock they may group nothing where
+            # they grouped on the first; the first pass's final fit estimated the offset with the pose, so
+            # its result stands (with its own gates) rather than a refusal for want of a group.
+            why = second.result.verdict.reasons[0] if second.result.verdict.reasons else "refused"
+            note = StageReport(
+                "time offset", 0, 1, (f"{said}, where it found no pose ({why}): the first pass stands",)
+            )
+            return replace(first, stages=(note, *first.stages))
+        note = StageReport("time offset", 1, 0, (said,))
+        return replace(second, stages=(*notes, note, *second.stages))
 
 
 def _calibrate(
@@ -247,7 +271,10 @@ def _calibrate(
     progress: ProgressCallback | None,
     created_at_ns: int | None,
     map_fn: MapFn,
-) -> CalibrationOutcome:
+    scan: bool,
+) -> CalibrationOutcome | ClockScan:
+    """One pass of every stage on the clock `inputs.time_offset_ns`. With `scan`, a pass whose grouping finds
+    nothing searches other clocks and returns the best (pipeline.clock) for the caller to run again on."""
     report: list[StageReport] = []
     say = progress or (lambda _stage, _fraction: None)
     camera = CameraModel.from_intrinsics(inputs.intrinsics)
@@ -341,6 +368,19 @@ def _calibrate(
         )
     )
     groups = [g.track_ids for g in grouping.groups]
+    if not groups and scan:
+
+        def rematch(shift_s: float) -> dict[int, MatchedTrack]:
+            moved = Trajectory(trajectory.stamps + np.int64(round(shift_s * 1e9)), trajectory.poses)
+            return {m.track_id: m for m in match_tracks(track_set.tracks, moved, association)}
+
+        clock = scan_clock(
+            hypothesis_set.hypotheses, tracks_by_id, rematch, frames, camera, inputs.vehicle, params.grouping,
+            params.clock,
+        )  # fmt: skip
+        if clock.found:
+            return clock
+        report.append(StageReport("clock scan", 0, 0, (clock.describe(),)))
     if not groups:
         # Single-track hypotheses can be too coarse for the overlap score (a pose 1-2 deg off puts the
         # vehicle's positions beside its boxes). Refine each on its own whole boxes and group those that then

@@ -1,0 +1,177 @@
+"""The camera's clock offset searched through the grouping, when the assumed clock groups nothing.
+
+A box stamped t on the camera clock shows the vehicle where it was a detector latency earlier. Paired with
+the pose at t instead, every 3D point of a track lies `v * s` from the truth (v the vehicle's velocity, s
+the clock error), and the hypothesis fitted to that track is the true camera displaced by the same `v * s`:
+to first order the image does not change when world points and camera move together. Tracks driven in
+different directions are displaced in different directions: at 150 ms and 12 m/s two opposite drive-pasts
+put their hypotheses 3.6 m apart, and grouping, which expects one camera, finds no two that agree.
+
+So when the assumed clock groups nothing, grouping is tried on trial clocks: for a trial shift s, each
+hypothesis is moved back by `v_i s` (v_i its track's least-squares velocity over its inliers), the tracks
+are paired with the poses on the shifted clock, and the similarity scores and clustering of grouping are
+applied unchanged. The shift whose largest group has the most members (then the highest overlap, then the
+smallest shift) is returned, and the caller runs every stage again on that clock, where the hypotheses are
+fitted to correctly paired boxes. Single-track hypotheses are coarse (1-3 m from body-shape misfit), so
+their agreement holds over a plateau of shifts 0.1-0.3 s wide: this only puts the early stages on a clock
+where drive-pasts can agree. The final fit estimates the offset itself (vehicle_model), with this as its
+prior, and the pipeline reruns once more when that estimate moves (calibrate).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pipeline.arrays import FloatArray, IntArray
+from pipeline.association import MatchedTrack
+from pipeline.camera import CameraModel, rotation_from_rvec, rvec_from_rotation
+from pipeline.grouping import GroupingParams, group_hypotheses
+from pipeline.hypotheses import Hypothesis, HypothesisSet
+from pipeline.tracking import FrameBoxes
+from pipeline.vehicle import body_centers
+from schemas.common import VehicleProfile
+
+_LM_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-10)
+
+# Matched tracks on the clock shifted by s seconds: track id -> track (the caller pairs boxes and poses).
+Rematch = Callable[[float], Mapping[int, MatchedTrack]]
+
+
+@dataclass(frozen=True, slots=True)
+class ClockParams:
+    """Trial shifts of the clock scan (s, relative to the assumed offset)."""
+
+    # The issue's floor is +-0.5 s; a latency beyond this is a misconfigured clock the operator must fix.
+    max_shift_s: float = 0.6
+    step_s: float = 0.025  # well inside the 0.1-0.3 s plateaus single-track hypotheses agree over
+    overlap_tie: float = 0.01  # mean overlaps this close are the same top of the plateau
+
+
+@dataclass(frozen=True, slots=True)
+class ClockScan:
+    """The best trial shift (s; the corrected offset is the assumed one minus it), its largest group, and
+    how many trial shifts gave a group at all."""
+
+    shift_s: float
+    track_ids: tuple[int, ...]
+    mean_overlap: float
+    shifts_with_groups: int
+    shifts_tried: int
+    max_shift_s: float
+
+    @property
+    def found(self) -> bool:
+        return bool(self.track_ids)
+
+    def describe(self) -> str:
+        if not self.found:
+            return f"no trial clock within +-{self.max_shift_s * 1e3:.0f} ms groups two drive-pasts either"
+        return (
+            f"on a clock {self.shift_s * 1e3:+.0f} ms from the assumed one, tracks {list(self.track_ids)} "
+            f"agree (overlap {self.mean_overlap:.2f}; {self.shifts_with_groups} of {self.shifts_tried} trial "
+            "clocks group some)"
+        )
+
+
+def track_velocity(track: MatchedTrack, rows: IntArray | None = None) -> FloatArray:
+    """Least-squares velocity (3,) m/s of the vehicle over a track's rows (all rows when `rows` is None)."""
+    stamps = track.stamps if rows is None else track.stamps[rows]
+    positions = track.poses[:, :3] if rows is None else track.poses[rows, :3]
+    if len(stamps) < 2:
+        return np.zeros(3)
+    t = (stamps - stamps[0]).astype(np.float64) / 1e9
+    t -= t.mean()
+    denominator = float(t @ t)
+    if denominator <= 0.0:
+        return np.zeros(3)
+    return np.asarray(t @ (positions - positions.mean(axis=0)) / denominator, dtype=np.float64)
+
+
+def shifted(hypothesis: Hypothesis, velocity: FloatArray, shift_s: float) -> Hypothesis:
+    """The hypothesis with its camera moved back by `velocity * shift_s` (rotation kept)."""
+    centre = hypothesis.camera_center - velocity * shift_s
+    return dataclasses.replace(hypothesis, t_cam_from_local=-hypothesis.R_cam_from_local @ centre)
+
+
+def refitted(
+    hypothesis: Hypothesis, track: MatchedTrack, camera: CameraModel, vehicle: VehicleProfile
+) -> Hypothesis:
+    """The hypothesis refitted by Levenberg-Marquardt from its pose on its inlier rows of `track` (box
+    centre <-> body centre, as fitted in pipeline.hypotheses). Only for a free PnP solution: a straight
+    track's pose rests on the box shapes (pipeline.straight_track), which the centres alone do not fix."""
+    if not hypothesis.solver.startswith(("epnp", "sqpnp")):
+        return hypothesis
+    rows = np.flatnonzero(hypothesis.inliers)
+    points = body_centers(track.poses[rows], vehicle)
+    pixels = track.box_centers[rows]
+    try:
+        rvec, tvec = cv2.solvePnPRefineLM(
+            points,
+            pixels,
+            camera.K,
+            camera.dist,
+            rvec_from_rotation(hypothesis.R_cam_from_local).reshape(3, 1).copy(),
+            hypothesis.t_cam_from_local.reshape(3, 1).copy(),
+            _LM_CRITERIA,
+        )
+    except cv2.error:
+        return hypothesis
+    rvec, tvec = np.asarray(rvec, dtype=np.float64).ravel(), np.asarray(tvec, dtype=np.float64).ravel()
+    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        return hypothesis
+    return dataclasses.replace(hypothesis, R_cam_from_local=rotation_from_rvec(rvec), t_cam_from_local=tvec)
+
+
+def scan_clock(
+    hypotheses: Sequence[Hypothesis],
+    tracks_by_id: Mapping[int, MatchedTrack],
+    rematch: Rematch,
+    frames: Sequence[FrameBoxes],
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    grouping: GroupingParams,
+    params: ClockParams,
+) -> ClockScan:
+    """Group the hypotheses on trial clocks (see the module); the best trial, or none found."""
+    velocity = {
+        h.track_id: track_velocity(tracks_by_id[h.track_id], np.flatnonzero(h.inliers)) for h in hypotheses
+    }
+    count = round(params.max_shift_s / params.step_s)
+    shifts = params.step_s * np.arange(-count, count + 1)
+    trials: list[tuple[float, tuple[int, ...], float]] = []  # shift, largest group, its mean overlap
+    for shift in shifts:
+        shift_s = float(shift)
+        tracks = rematch(shift_s)
+        # A track whose rows change with the clock (poses missing at an end) is left out of this trial.
+        trial = tuple(
+            refitted(shifted(h, velocity[h.track_id], shift_s), tracks[h.track_id], camera, vehicle)
+            for h in hypotheses
+            if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
+        )
+        result = group_hypotheses(HypothesisSet(trial, {}), tracks, frames, camera, vehicle, grouping)
+        if result.groups:
+            group = result.groups[0]
+            trials.append((shift_s, group.track_ids, group.mean_overlap_ratio))
+    if not trials:
+        return ClockScan(math.nan, (), 0.0, 0, len(shifts), params.max_shift_s)
+    # The top: the most members, and an overlap within `overlap_tie` of the best among those. Hypotheses
+    # agree over a plateau of clocks; its centre, not its edge nearest the assumed clock, is the estimate.
+    members = max(len(ids) for _, ids, _ in trials)
+    overlap = max(o for _, ids, o in trials if len(ids) == members)
+    top = [t for t in trials if len(t[1]) == members and t[2] >= overlap - params.overlap_tie]
+    runs: list[list[tuple[float, tuple[int, ...], float]]] = []
+    for item in top:
+        if runs and item[0] - runs[-1][-1][0] <= 1.5 * params.step_s:
+            runs[-1].append(item)
+        else:
+            runs.append([item])
+    run = max(runs, key=lambda r: (len(r), -min(abs(t[0]) for t in r)))
+    centre = float(np.mean([t[0] for t in run]))
+    middle = min(run, key=lambda t: abs(t[0] - centre))
+    return ClockScan(centre, middle[1], middle[2], len(trials), len(shifts), params.max_shift_s)
