@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -50,7 +51,6 @@ class ClockParams:
     # The issue's floor is +-0.5 s; a latency beyond this is a misconfigured clock the operator must fix.
     max_shift_s: float = 0.6
     step_s: float = 0.025  # well inside the 0.1-0.3 s plateaus single-track hypotheses agree over
-    overlap_tie: float = 0.01  # mean overlaps this close are the same top of the plateau
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,6 +64,9 @@ class ClockScan:
     shifts_with_groups: int
     shifts_tried: int
     max_shift_s: float
+    # Every hypothesis moved to that clock and refitted there: the next pass groups these (fresh EPnP on
+    # the re-paired boxes can miss the agreement the scan found: occluded seed 2).
+    hypotheses: tuple[Hypothesis, ...] = ()
 
     @property
     def found(self) -> bool:
@@ -145,6 +148,7 @@ def scan_clock(
     count = round(params.max_shift_s / params.step_s)
     shifts = params.step_s * np.arange(-count, count + 1)
     trials: list[tuple[float, tuple[int, ...], float]] = []  # shift, largest group, its mean overlap
+    centres: list[dict[int, FloatArray]] = []  # per trial: track id -> corrected camera centre
     for shift in shifts:
         shift_s = float(shift)
         tracks = rematch(shift_s)
@@ -154,24 +158,44 @@ def scan_clock(
             for h in hypotheses
             if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
         )
+        centres.append({h.track_id: h.camera_center for h in trial})
         result = group_hypotheses(HypothesisSet(trial, {}), tracks, frames, camera, vehicle, grouping)
         if result.groups:
             group = result.groups[0]
             trials.append((shift_s, group.track_ids, group.mean_overlap_ratio))
     if not trials:
         return ClockScan(math.nan, (), 0.0, 0, len(shifts), params.max_shift_s)
-    # The top: the most members, and an overlap within `overlap_tie` of the best among those. Hypotheses
-    # agree over a plateau of clocks; its centre, not its edge nearest the assumed clock, is the estimate.
+    # Which drive-pasts: the largest group, the one found on the most trial clocks (then the best overlap).
     members = max(len(ids) for _, ids, _ in trials)
-    overlap = max(o for _, ids, o in trials if len(ids) == members)
-    top = [t for t in trials if len(t[1]) == members and t[2] >= overlap - params.overlap_tie]
-    runs: list[list[tuple[float, tuple[int, ...], float]]] = []
-    for item in top:
-        if runs and item[0] - runs[-1][-1][0] <= 1.5 * params.step_s:
-            runs[-1].append(item)
-        else:
-            runs.append([item])
-    run = max(runs, key=lambda r: (len(r), -min(abs(t[0]) for t in r)))
-    centre = float(np.mean([t[0] for t in run]))
-    middle = min(run, key=lambda t: abs(t[0] - centre))
-    return ClockScan(centre, middle[1], middle[2], len(trials), len(shifts), params.max_shift_s)
+    sets = Counter(ids for _, ids, _ in trials if len(ids) == members)
+    chosen = max(
+        sets, key=lambda ids: (sets[ids], max(o for _, i, o in trials if i == ids), -min(ids, default=0))
+    )
+    # Which clock: r_ov cannot see a camera displaced along the road by up to half a car length, so the
+    # drive-pasts group over a plateau of clocks 0.1-0.3 s wide, and its edges are where the hypotheses'
+    # own errors happen to put them. Within the plateau, the estimate is the clock on which the chosen
+    # drive-pasts' corrected cameras lie closest together (mean squared pair distance, minimum refined by a
+    # parabola through its neighbours).
+    on_plateau = [
+        k for k, shift in enumerate(shifts) if any(t[0] == float(shift) and t[1] == chosen for t in trials)
+    ]
+    spread = np.full(len(shifts), np.inf)
+    for k in range(min(on_plateau), max(on_plateau) + 1):
+        if all(i in centres[k] for i in chosen):
+            points = np.array([centres[k][i] for i in chosen])
+            spread[k] = float(np.mean(np.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=2)))
+    k = int(np.argmin(spread))
+    estimate = float(shifts[k])
+    if 0 < k < len(shifts) - 1 and np.all(np.isfinite(spread[k - 1 : k + 2])):
+        left, mid, right = spread[k - 1], spread[k], spread[k + 1]
+        curvature = left - 2.0 * mid + right
+        if curvature > 0.0:
+            estimate += 0.5 * params.step_s * float(left - right) / float(curvature)
+    overlap = max(o for _, i, o in trials if i == chosen)
+    tracks = rematch(estimate)
+    moved = tuple(
+        refitted(shifted(h, velocity[h.track_id], estimate), tracks[h.track_id], camera, vehicle)
+        for h in hypotheses
+        if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
+    )
+    return ClockScan(estimate, chosen, overlap, len(trials), len(shifts), params.max_shift_s, moved)

@@ -114,17 +114,17 @@ def test_an_unknown_latency_splits_opposite_drive_pasts_and_the_scan_joins_them(
     grouped, clock = scan(latency_s)
     assert grouped.groups == ()  # the problem: on the assumed clock no two drive-pasts agree
     assert clock.found and clock.track_ids == (0, 1)
-    # The box at t shows the vehicle at t - latency: the poses must be moved by the latency, within the
-    # plateau's resolution (the final fit estimates the offset itself).
-    assert clock.shift_s == pytest.approx(latency_s, abs=0.1)
+    # The box at t shows the vehicle at t - latency: the poses must be moved by the latency (measured:
+    # -200 ms and +274 ms; the +0.25 s scene's straight-track hypotheses are only shifted, not refitted).
+    assert clock.shift_s == pytest.approx(latency_s, abs=0.05)
     assert "tracks [0, 1] agree" in clock.describe()
 
 
 @pytest.mark.parametrize("latency_s", [0.0, 0.1])
 def test_the_scan_centres_on_the_true_clock(latency_s: float) -> None:
-    _, clock = scan(latency_s)
+    _, clock = scan(latency_s)  # measured: -1 ms and +101 ms
     assert clock.found
-    assert clock.shift_s == pytest.approx(latency_s, abs=0.03)
+    assert clock.shift_s == pytest.approx(latency_s, abs=0.01)
 
 
 def test_one_drive_past_gives_no_clock() -> None:
