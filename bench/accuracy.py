@@ -32,12 +32,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import statistics
 import sys
 import time
 import traceback
-from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -316,7 +314,7 @@ def _calib_track_fates(
             fates.append(f"{head}: hypothesis rejected: {hypotheses.rejected[track_id]}")
         elif track_id in by_id and origin is not None:
             h = by_id[track_id]
-            centre = h.camera_center + np.array([origin.x, origin.y, origin.z])
+            centre = h.camera_centre + np.array([origin.x, origin.y, origin.z])
             angle = math.degrees(rotation_angle_rad(h.R_cam_from_local, np.asarray(truth.R)))
             where = "not grouped"
             if grouping is not None:
@@ -331,24 +329,6 @@ def _calib_track_fates(
         else:
             fates.append(f"{head}: never reached the hypotheses")
     return fates
-
-
-_NUMBER = re.compile(r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?|inf")
-_COUNTED = re.compile(r"^(\d+) x (.*)$")
-
-
-def _condense(notes: Sequence[str]) -> list[str]:
-    """Stage notes like '1 x camera 76.2 m from the driven path > 40.0 m', one per value, counted again
-    with the numbers blanked out ('12 x camera # m from the driven path > # m')."""
-    counts: Counter[str] = Counter()
-    out = []
-    for note in notes:
-        match = _COUNTED.match(note)
-        if match:
-            counts[_NUMBER.sub("#", match.group(2))] += int(match.group(1))
-        else:
-            out.append(note)
-    return out + [f"{n} x {text}" for text, n in counts.most_common()]
 
 
 def box_area_ratio(truth: Any) -> float | None:
@@ -414,7 +394,12 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
             run.update(_evaluation_fields(floor, "floor_"))
             with _stage_spy() as seen:
                 started = time.perf_counter()
-                outcome = calibrate(inputs_for(sim, camera_id), params, np.random.default_rng([seed, index]))
+                outcome = calibrate(
+                    inputs_for(sim, camera_id),
+                    params,
+                    np.random.default_rng([seed, index]),
+                    created_at_ns=time.time_ns(),
+                )
                 run["seconds"] = time.perf_counter() - started
             result = outcome.result
             evaluation = evaluate_against_ground_truth(result, truth)
@@ -442,7 +427,7 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
             )
             run["stages"] = [
                 f"{s.stage}: kept {s.kept}, discarded {s.discarded}"
-                + (f" ({'; '.join(_condense(s.notes))})" if s.notes else "")
+                + (f" ({'; '.join(s.lines())})" if s.lines() else "")
                 for s in outcome.stages
             ]
             purity = _track_purity(sim, camera_id, params)

@@ -121,7 +121,12 @@ def instrumented_main(pair_dir: Path) -> int:
     with track_pool(None) as map_fn:
         clock = StageClock()
         outcome = calibrate(
-            loaded.inputs, PipelineParams(), np.random.default_rng(0), progress=clock, map_fn=map_fn
+            loaded.inputs,
+            PipelineParams(),
+            np.random.default_rng(0),
+            created_at_ns=time.time_ns(),
+            progress=clock,
+            map_fn=map_fn,
         )
         stages_end = time.perf_counter()
     t3 = time.perf_counter()

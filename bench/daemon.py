@@ -1642,7 +1642,7 @@ def run_detector(seconds: float, cameras: int, fps: float) -> dict[str, Any]:
             t0 = time.perf_counter()
             decoded = decode_compressed_image(payload)
             t1 = time.perf_counter()
-            canvas, placement = letterbox(decoded.image, 640, 640, centered=True)
+            canvas, placement = letterbox(decoded.image, 640, 640, centred=True)
             tensor = network_input(canvas, "yolov8")
             t2 = time.perf_counter()
             (output,) = session_run(None, {"images": tensor})

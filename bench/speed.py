@@ -76,7 +76,12 @@ def run_calibrate(inputs: Any, seed: int) -> tuple[Any, float, float, dict[str, 
     with track_pool() as map_fn:
         clock = StageClock()
         outcome = calibrate(
-            inputs, PipelineParams(), np.random.default_rng(seed), progress=clock, map_fn=map_fn
+            inputs,
+            PipelineParams(),
+            np.random.default_rng(seed),
+            created_at_ns=time.time_ns(),
+            progress=clock,
+            map_fn=map_fn,
         )
         stages_end = time.perf_counter()
     end = time.perf_counter()

@@ -19,7 +19,6 @@ from __future__ import annotations
 import functools
 import itertools
 import json
-import os
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +29,7 @@ import zenoh
 from daemon.bus import BusError, session_config, zenoh_message
 from daemon.keys import ALL_V2X, detections_key, image_key, v2x_key
 from pipeline.errors import InputError
+from schemas.atomic import write_atomic
 from schemas.config import DaemonConfig
 
 # Messages that publish data on a key (the daemon subscribes to detections and V2X; it never queries them).
@@ -144,17 +144,11 @@ def render_site_config(config: DaemonConfig, base_file: Path) -> str:
 
 
 def write_site_config(config: DaemonConfig, base_file: Path, out: Path) -> Path:
-    """render_site_config, written atomically (tmp, fsync, rename): a node never reads half a config."""
+    """render_site_config, written atomically (schemas.atomic): a node never reads half a config."""
     text = render_site_config(config, base_file)
-    tmp = out.with_name(f".{out.name}.tmp")
     try:
-        with open(tmp, "w", encoding="utf-8") as stream:
-            stream.write(text)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, out)
+        write_atomic(out, text.encode("utf-8"))
     except OSError as err:
-        tmp.unlink(missing_ok=True)
         raise InputError(f"--out {out}", f"cannot write: {err.strerror or err}") from err
     return out
 

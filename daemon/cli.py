@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import sys
+import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
@@ -258,6 +259,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             loaded.inputs,
             PipelineParams(),
             np.random.default_rng(args.seed),
+            created_at_ns=time.time_ns(),
             progress=progress,
             map_fn=map_fn,
         )

@@ -41,7 +41,7 @@ from daemon.demo_images import (
 from daemon.keys import calibration_key, detections_key, health_key, image_key, status_key, v2x_key
 from daemon.main import Daemon, DaemonEvent
 from daemon.recording import write_simulation_mcap
-from pipeline.camera import camera_center
+from pipeline.camera import camera_centre
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame
 from pipeline.metrics import evaluate_against_ground_truth
@@ -90,7 +90,7 @@ def demo_config(
     origin = np.array([sim.origin.x, sim.origin.y, sim.origin.z])
     cameras = []
     for index, camera in enumerate(sim.cameras):
-        centre_utm = camera_center(camera.R_cam_from_local, camera.t_cam_from_local) + origin
+        centre_utm = camera_centre(camera.R_cam_from_local, camera.t_cam_from_local) + origin
         angle = 2.0 * np.pi * index / max(1, len(sim.cameras))
         east = centre_utm[0] + POSITION_ERROR_M * np.cos(angle)
         north = centre_utm[1] + POSITION_ERROR_M * np.sin(angle)

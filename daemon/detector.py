@@ -68,9 +68,9 @@ class Detections:
     class_ids: IntArray
 
 
-def letterbox(image: ImageBgr, width: int, height: int, centered: bool) -> tuple[ImageBgr, Letterbox]:
-    """Resize keeping the aspect ratio and pad with grey to width x height (network px). YOLOv5/v8 center
-    the image, YOLOX puts it at the top left (`centered` False)."""
+def letterbox(image: ImageBgr, width: int, height: int, centred: bool) -> tuple[ImageBgr, Letterbox]:
+    """Resize keeping the aspect ratio and pad with grey to width x height (network px). YOLOv5/v8 centre
+    the image, YOLOX puts it at the top left (`centred` False)."""
     h, w = image.shape[:2]
     scale = min(width / w, height / h)
     new_w, new_h = max(1, min(width, round(w * scale))), max(1, min(height, round(h * scale)))
@@ -79,7 +79,7 @@ def letterbox(image: ImageBgr, width: int, height: int, centered: bool) -> tuple
         resized = np.asarray(
             cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_LINEAR), dtype=np.uint8
         )
-    pad_x, pad_y = ((width - new_w) // 2, (height - new_h) // 2) if centered else (0, 0)
+    pad_x, pad_y = ((width - new_w) // 2, (height - new_h) // 2) if centred else (0, 0)
     canvas = np.full((height, width, 3), PAD_VALUE, dtype=np.uint8)
     canvas[pad_y : pad_y + new_h, pad_x : pad_x + new_w] = resized
     # The exact per-axis scale of the rounded size, so boxes map back to the pixel they came from.
@@ -264,7 +264,7 @@ class OnnxDetector:
     def detect(self, image: ImageBgr) -> Detections:
         """Boxes in `image`'s pixels (BGR (H, W, 3) uint8)."""
         layout: Layout = self.config.layout
-        canvas, placement = letterbox(image, self.input_width, self.input_height, centered=layout != "yolox")
+        canvas, placement = letterbox(image, self.input_width, self.input_height, centred=layout != "yolox")
         (output,) = self._session.run([self._output_name], {self._input_name: network_input(canvas, layout)})
         boxes, scores, class_ids = decode_output(output, layout, self.input_width, self.input_height)
         height, width = image.shape[:2]

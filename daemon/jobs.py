@@ -30,7 +30,6 @@ from types import FrameType
 import numpy as np
 from pydantic import ValidationError
 
-from daemon.offline import collapse_counted_notes
 from daemon.recording import MCAP_MAGIC, read_window
 from daemon.workers import track_pool
 from pipeline.calibrate import (
@@ -42,7 +41,6 @@ from pipeline.calibrate import (
 )
 from pipeline.errors import RsucalError
 from pipeline.frames import UtmFrame, poses_from_v2x
-from pipeline.validation import ValidationGates
 from schemas.common import CameraIntrinsics, VehicleProfile, describe_validation_error
 from schemas.config import GatesConfig, JobsConfig
 from schemas.messages import apply_labels
@@ -110,8 +108,7 @@ class JobOutcome:
 
 def pipeline_params(gates: GatesConfig) -> PipelineParams:
     """The pipeline's parameters for the daemon: defaults, with the configured validation gates."""
-    # Same field names on both sides (schemas.config documents them); a field added to one only fails here.
-    return PipelineParams(gates=ValidationGates(**gates.model_dump()))
+    return PipelineParams(gates=gates)
 
 
 def new_job_id(camera_id: str, now_ns: int) -> str:
@@ -335,7 +332,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
         progress.calibration, progress.inputs = outcome, inputs
         for report in outcome.stages:
             notes.append(f"{report.stage}: kept {report.kept}, discarded {report.discarded}")
-            notes.extend(f"{report.stage}: {note}" for note in collapse_counted_notes(report.notes))
+            notes.extend(f"{report.stage}: {line}" for line in report.lines())
         # calibrate() knows the detections' span and its own parameters; the job knows the window it was
         # asked for and the whole daemon config.
         provenance = Provenance(

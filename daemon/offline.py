@@ -23,12 +23,12 @@ import numpy as np
 from pyproj.exceptions import CRSError
 from tqdm import tqdm
 
-from daemon.atomic import write_atomic
 from daemon.keys import v2x_key
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
 from pipeline.loaders import load_intrinsics, load_toolbox_detections, load_toolbox_poses, load_vehicle
+from schemas.atomic import write_atomic
 from schemas.common import EPSG_PATTERN, IDENTIFIER, LOCAL_CRS, CameraIntrinsics, VehicleProfile
 from schemas.messages import VehiclePose
 from schemas.results import CalibrationResult
@@ -43,8 +43,6 @@ OFFLINE_RSU_ID = "offline"
 DEFAULT_CAMERA_ID = "camera"
 
 _EPSG = re.compile(EPSG_PATTERN)
-_NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
-_COUNTED_NOTE = re.compile(r"^(\d+) x (.*)$")
 # Eastings inside a UTM zone lie within ~167-833 km (widest at the equator), northings within 0-10 000 km.
 # Poses outside are not absolute UTM (typically a local frame), and their WGS84 output would be nonsense.
 _UTM_EAST_RANGE_M = (100_000.0, 900_000.0)
@@ -286,7 +284,7 @@ def _choices(values: Sequence[str]) -> str:
 
 
 def write_result(result: CalibrationResult, path: Path) -> Path:
-    """Write the result JSON atomically and durably (daemon.atomic): never a half-written file."""
+    """Write the result JSON atomically and durably (schemas.atomic): never a half-written file."""
     path = Path(path)
     try:
         write_atomic(path, (result.model_dump_json(indent=2) + "\n").encode("utf-8"))
@@ -329,56 +327,18 @@ class TerminalProgress:
         self.close()
 
 
-def collapse_counted_notes(notes: Sequence[str]) -> tuple[str, ...]:
-    """Merge 'N x reason' notes that differ only in their numbers; differing numbers become a range.
-
-    '1 x camera 42.2 m from the driven path > 40.0 m' and '1 x camera 57.3 m ...' read as
-    '2 x camera 42.2..57.3 m from the driven path > 40.0 m'. Other notes come first, unchanged; merged
-    ones follow, largest count first.
-    """
-    plain: list[str] = []
-    counts: dict[str, int] = {}  # template -> summed count, in order of first appearance
-    columns: dict[str, list[list[str]]] = {}  # template -> the numbers at each of its places
-    for note in notes:
-        match = _COUNTED_NOTE.match(note)
-        if match is None:
-            plain.append(note)
-            continue
-        text = match.group(2).replace("{", "(").replace("}", ")")  # braces would break str.format
-        template = _NUMBER.sub("{}", text)
-        numbers = _NUMBER.findall(text)
-        counts[template] = counts.get(template, 0) + int(match.group(1))
-        places = columns.setdefault(template, [[] for _ in numbers])
-        for place, number in zip(places, numbers, strict=True):
-            place.append(number)
-    merged = [
-        f"{count} x {template.format(*(_number_range(place) for place in columns[template]))}"
-        for template, count in sorted(counts.items(), key=lambda item: -item[1])
-    ]
-    return (*plain, *merged)
-
-
-def _number_range(numbers: Sequence[str]) -> str:
-    """'42.2' when all agree, else 'min..max' with the most decimals any of them had."""
-    if len(set(numbers)) == 1:
-        return numbers[0]
-    values = [float(n) for n in numbers]
-    decimals = max(len(n.partition(".")[2]) for n in numbers)
-    return f"{min(values):.{decimals}f}..{max(values):.{decimals}f}"
-
-
 def format_stage_reports(outcome: CalibrationOutcome) -> str:
     """What each stage kept and discarded and why, then the candidate groups (for --verbose)."""
     lines = ["stages:"]
     for report in outcome.stages:
         lines.append(f"  {report.stage:<12} kept {report.kept}, discarded {report.discarded}")
-        lines.extend(f"    {note}" for note in collapse_counted_notes(report.notes))
+        lines.extend(f"    {line}" for line in report.lines())
     if outcome.candidates:
         origin = np.asarray(outcome.result.frame.origin, dtype=np.float64)
         lines.append("candidate groups (* chosen):")
         for candidate in outcome.candidates:
             mark = "*" if candidate is outcome.chosen else " "
-            centre = candidate.whole_box.camera_center + origin
+            centre = candidate.whole_box.camera_centre + origin
             lines.append(
                 f"  {mark} tracks {list(candidate.track_ids)}: {candidate.traversals} traversal(s), "
                 f"box error {100.0 * candidate.box_error_rel:.2f} %, "

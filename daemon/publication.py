@@ -24,10 +24,10 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from daemon.jobs import JobOutcome
 from daemon.state import CameraState
+from pipeline.camera import rvec_from_rotation
 from schemas.config import ChangeConfig
 from schemas.results import CalibrationResult, ChangeInfo, JobSummary, Verdict
 
@@ -210,7 +210,7 @@ def compare_results(new: CalibrationResult, current: CalibrationResult, change: 
     # R_local_from_cam = expm([w]x) R^T (pipeline.refinement.Refinement), so the small rotation taking the
     # current camera to the new one is w = rotvec(R_new^T R_current).
     relative = np.asarray(new.R, dtype=np.float64).T @ np.asarray(current.R, dtype=np.float64)
-    w = _rotation_vector(relative)
+    w = rvec_from_rotation(relative)  # its norm is pipeline.camera.rotation_angle_rad
     shift_deg = math.degrees(float(np.linalg.norm(w)))
     cov_rot = _block(new, 0) + _block(current, 0)
     cov_pos = _block(new, 3) + _block(current, 3)
@@ -229,12 +229,6 @@ def compare_results(new: CalibrationResult, current: CalibrationResult, change: 
         min_shift_m=change.shift_m,
         min_shift_deg=change.shift_deg,
     )
-
-
-def _rotation_vector(R: np.ndarray) -> np.ndarray:
-    """Axis times angle (rad) of a rotation matrix, through its quaternion: accurate for the small angles that
-    matter here (acos of the trace loses half the digits near 0)."""
-    return np.asarray(Rotation.from_matrix(R).as_rotvec(), dtype=np.float64)
 
 
 def _block(result: CalibrationResult, start: int) -> np.ndarray:

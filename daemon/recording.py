@@ -51,6 +51,7 @@ from daemon import __version__, foxglove, keys
 from daemon.clock import Clock
 from daemon.foxglove import MessageSchema
 from pipeline.errors import RecordingError
+from schemas.atomic import fsync_dir
 from schemas.common import (
     IDENTIFIER,
     IDENTIFIER_CHARS,
@@ -1257,15 +1258,6 @@ def list_recordings(directory: Path, rsu_id: str) -> list[RecordingFile]:
     return found
 
 
-def _fsync_directory(directory: Path) -> None:
-    """Make a new file's directory entry durable (a power cut could otherwise lose the whole file)."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 class RotatingRecorder:
     """The daemon's recording: every valid message, as received, in a series of rotated MCAP files.
 
@@ -1547,7 +1539,7 @@ class RotatingRecorder:
         path = self.directory / recording_name(self.rsu_id, start_ns)
         try:
             writer = RecordingWriter(path, self.storage.compression, chunk_size=self.storage.chunk_bytes)
-            _fsync_directory(self.directory)
+            fsync_dir(self.directory)
         except OSError as err:
             self._retry_at_ns = received_ns + int(RETRY_AFTER_ERROR_S * 1e9)
             self.last_error = f"{path}: cannot create: {err}"

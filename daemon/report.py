@@ -20,6 +20,7 @@ import base64
 import html
 import io
 import math
+import time
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,10 +37,11 @@ from matplotlib.patches import Ellipse, Polygon, Rectangle
 
 from pipeline.association import MatchedTrack
 from pipeline.calibrate import CalibrationDiagnostics, CalibrationOutcome
-from pipeline.camera import CameraModel, camera_center, project_points, undistort_pixels
+from pipeline.camera import CameraModel, camera_centre, pose_distance, project_points, undistort_pixels
 from pipeline.metrics import delta_p
 from pipeline.refinement import RefinementParams, box_residuals
 from pipeline.vehicle import body_corners, footprint_corners
+from schemas.atomic import write_atomic
 from schemas.common import VehicleProfile
 from schemas.messages import DetectionFrame
 from schemas.results import CalibrationResult
@@ -128,7 +130,7 @@ def _chosen_boxes(
         all_clipped = np.all(np.isnan(residuals), axis=1)
         misfit = np.nanmax(np.where(np.isnan(residuals), -np.inf, np.abs(residuals)), axis=1)
         box_error_pct = np.where(all_clipped, np.nan, 100.0 * misfit / heights)
-    centre = camera_center(R, t)
+    centre = camera_centre(R, t)
     return _Boxes(
         track_ids=np.concatenate([np.full(len(m.stamps), m.track_id) for m in chosen]),
         stamps=np.concatenate([m.stamps for m in chosen]),
@@ -216,7 +218,7 @@ def _ground_of_view(
     R: np.ndarray, t: np.ndarray, camera: CameraModel, diagnostics: CalibrationDiagnostics
 ) -> np.ndarray:
     """Where the image border's rays meet the ground (capped at COVERAGE_RANGE_M): the view's outline."""
-    centre = camera_center(R, t)
+    centre = camera_centre(R, t)
     w, h = camera.width, camera.height
     border = np.concatenate(
         [
@@ -242,7 +244,7 @@ def _ground_of_view(
 def _map(
     data: _Boxes, R: np.ndarray, t: np.ndarray, camera: CameraModel, diagnostics: CalibrationDiagnostics
 ) -> bytes:
-    centre = camera_center(R, t)
+    centre = camera_centre(R, t)
     span = np.concatenate([data.poses[:, :2], centre[None, :2]])
     low, high = span.min(axis=0) - 25.0, span.max(axis=0) + 25.0
     aspect = (high[1] - low[1]) / (high[0] - low[0])
@@ -349,7 +351,7 @@ def _hypotheses(
             group_of.setdefault(track_id, number)
     near: list[np.ndarray] = [centre]
     for hypothesis in diagnostics.hypotheses:
-        c = hypothesis.camera_center
+        c = hypothesis.camera_centre
         group_number = group_of.get(hypothesis.track_id)
         is_chosen = hypothesis.track_id in chosen_ids
         colour = "#bbbbbb" if group_number is None else _TRAVERSAL_COLOURS(group_number % 10)
@@ -371,7 +373,7 @@ def _hypotheses(
     overview.scatter([], [], color="#bbbbbb", s=24, label="in no group")
     overview.scatter([], [], color="white", edgecolors="black", s=70, label="chosen group's tracks")
     for candidate in outcome.candidates:
-        c = candidate.whole_box.camera_center
+        c = candidate.whole_box.camera_centre
         near.append(c)
         for axes, k in ((overview, 1), (zoom, 1), (side, 2)):
             axes.plot(c[0], c[k], "x", color="black", markersize=9, mew=2, zorder=4)
@@ -488,7 +490,7 @@ def render_figures(
         return Figures(png)
     camera = CameraModel.from_intrinsics(result.intrinsics)
     R, t = _pose_in_run_frame(result, diagnostics)
-    centre = camera_center(R, t)
+    centre = camera_centre(R, t)
     chosen_ids = set(outcome.chosen.track_ids) if outcome.chosen is not None else set()
     chosen = [m for m in diagnostics.tracks if m.track_id in chosen_ids]
     if chosen:
@@ -656,9 +658,7 @@ def write_report(
     html_path = Path(html_path)
     html_path.parent.mkdir(parents=True, exist_ok=True)
     written = [html_path]
-    temporary = html_path.with_name(f".{html_path.name}.tmp")
-    temporary.write_text(report_html(result, figures, notes), encoding="utf-8")
-    temporary.replace(html_path)  # a reader never sees half a report
+    write_atomic(html_path, report_html(result, figures, notes).encode("utf-8"))  # never half a report
     if png_dir is not None:
         png_dir.mkdir(parents=True, exist_ok=True)
         for name, data in figures.png.items():
@@ -673,9 +673,7 @@ def write_report_failure(
 ) -> Path:
     """The report page without figures, saying why they could not be drawn (the result is still there)."""
     text = report_html(result, Figures({}), [f"the figures could not be drawn: {reason}", *notes])
-    temporary = html_path.with_name(f".{html_path.name}.tmp")
-    temporary.write_text(text, encoding="utf-8")
-    temporary.replace(html_path)
+    write_atomic(html_path, text.encode("utf-8"))
     return html_path
 
 
@@ -686,13 +684,10 @@ def _pose_difference(a: CalibrationResult, b: CalibrationResult) -> tuple[float,
     """(shift m, angle deg) between two results' camera poses, or None when one has no pose."""
     if a.R is None or a.t is None or b.R is None or b.t is None or a.frame.crs != b.frame.crs:
         return None
-    centres = []
-    for r in (a, b):
-        R, t = np.asarray(r.R), np.asarray(r.t)
-        centres.append(camera_center(R, t) + np.asarray(r.frame.origin))
-    R_delta = np.asarray(a.R) @ np.asarray(b.R).T
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R_delta)) - 1.0) / 2.0))))
-    return float(np.linalg.norm(centres[0] - centres[1])), angle
+    R_a, R_b = np.asarray(a.R, dtype=np.float64), np.asarray(b.R, dtype=np.float64)
+    centre_a = camera_centre(R_a, np.asarray(a.t, dtype=np.float64)) + np.asarray(a.frame.origin)
+    centre_b = camera_centre(R_b, np.asarray(b.t, dtype=np.float64)) + np.asarray(b.frame.origin)
+    return pose_distance(R_a, centre_a, R_b, centre_b)
 
 
 def run_report(
@@ -735,7 +730,13 @@ def run_report(
         time_offset_ns=time_offset_ns,
     )
     with track_pool(workers) as map_fn:
-        outcome = calibrate(loaded.inputs, PipelineParams(), np.random.default_rng(seed), map_fn=map_fn)
+        outcome = calibrate(
+            loaded.inputs,
+            PipelineParams(),
+            np.random.default_rng(seed),
+            created_at_ns=time.time_ns(),
+            map_fn=map_fn,
+        )
     notes = list(loaded.notes)
     difference = _pose_difference(result, outcome.result)
     if difference is None:

@@ -16,8 +16,8 @@ from pathlib import Path
 
 from pydantic import Field, ValidationError
 
-from daemon.atomic import fsync_dir, remove_stale_tmp, write_atomic
 from pipeline.errors import InputError
+from schemas.atomic import fsync_dir, remove_stale_tmp, write_atomic
 from schemas.common import (
     IDENTIFIER,
     UNSAFE_IN_IDENTIFIER,

@@ -51,7 +51,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from pipeline.arrays import BoolArray, FloatArray, check_shape
-from pipeline.camera import CameraModel, camera_center, project_points_cam, undistort_pixels
+from pipeline.camera import CameraModel, camera_centre, project_points_cam, undistort_pixels
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame
 from schemas.common import CameraIntrinsics
@@ -92,26 +92,26 @@ def _as_points(xy_utm: FloatArray) -> FloatArray:
 class CircleCoverage:
     """Within `radius_m` (horizontal) of a point, e.g. the camera's approximate position."""
 
-    center_east: float
-    center_north: float
+    centre_east: float
+    centre_north: float
     radius_m: float
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.center_east) and math.isfinite(self.center_north)):
+        if not (math.isfinite(self.centre_east) and math.isfinite(self.centre_north)):
             raise InputError(
-                "coverage", f"circle centre = ({self.center_east}, {self.center_north}) not finite"
+                "coverage", f"circle centre = ({self.centre_east}, {self.centre_north}) not finite"
             )
         if not (math.isfinite(self.radius_m) and self.radius_m > 0.0):
             raise InputError("coverage", f"coverage_radius_m = {self.radius_m} must be positive and finite")
 
     def contains(self, xy_utm: FloatArray) -> BoolArray:
         points = _as_points(xy_utm)
-        d2 = (points[:, 0] - self.center_east) ** 2 + (points[:, 1] - self.center_north) ** 2
+        d2 = (points[:, 0] - self.centre_east) ** 2 + (points[:, 1] - self.centre_north) ** 2
         return np.asarray(d2 <= self.radius_m * self.radius_m, dtype=np.bool_)
 
     def contains_point(self, east: float, north: float) -> bool:
-        dx = east - self.center_east
-        dy = north - self.center_north
+        dx = east - self.centre_east
+        dy = north - self.centre_north
         return dx * dx + dy * dy <= self.radius_m * self.radius_m
 
 
@@ -216,7 +216,7 @@ class ViewCoverage:
         self._R = tuple(float(v) for v in R.ravel())
         self._t = tuple(float(v) for v in t)
         self._origin = (float(origin[0]), float(origin[1]))
-        centre = camera_center(R, t)
+        centre = camera_centre(R, t)
         self._centre = (float(centre[0]), float(centre[1]), float(centre[2]))
         # Local height of the vehicle point as z = a + b x + c y.
         if ground_plane is not None and ground_plane.normal[2] >= MIN_GROUND_NORMAL_Z:

@@ -165,7 +165,7 @@ class MatchedTrack:
             )
 
     @property
-    def box_centers(self) -> Pixels:
+    def box_centres(self) -> Pixels:
         """Box centres (N, 2) px: the image half of the paper's correspondences."""
         return np.column_stack(
             [(self.boxes[:, 0] + self.boxes[:, 2]) / 2.0, (self.boxes[:, 1] + self.boxes[:, 3]) / 2.0]
@@ -221,3 +221,24 @@ def select_rows(tracks: Sequence[MatchedTrack], keep: Mask) -> list[MatchedTrack
                 MatchedTrack(track.track_id, track.stamps[rows], track.boxes[rows], track.poses[rows])
             )
     return kept
+
+
+def apart_in_time(
+    scored: Sequence[tuple[float, MatchedTrack]], spans: Sequence[tuple[int, int]]
+) -> list[MatchedTrack]:
+    """Best-scored first, the tracks that overlap in time neither `spans` (the vehicle's tracks) nor each
+    other: a track seen together with one of the vehicle's is another vehicle."""
+    taken = list(spans)
+    added: list[MatchedTrack] = []
+    for _, track in sorted(scored, key=lambda pair: pair[0]):
+        span = (int(track.stamps[0]), int(track.stamps[-1]))
+        if any(span[0] <= end and start <= span[1] for start, end in taken):
+            continue
+        added.append(track)
+        taken.append(span)
+    return added
+
+
+def track_spans(tracks: Sequence[MatchedTrack]) -> list[tuple[int, int]]:
+    """(first, last) stamp ns of each track."""
+    return [(int(m.stamps[0]), int(m.stamps[-1])) for m in tracks]

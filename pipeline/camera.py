@@ -164,15 +164,22 @@ def camera_rotation_from_view(yaw: float, pitch_down: float, roll: float = 0.0) 
     return R_world_from_cam.T.copy()
 
 
-def camera_center(R_cam_from_local: Rotation, t_cam_from_local: Vec3) -> Vec3:
+def camera_centre(R_cam_from_local: Rotation, t_cam_from_local: Vec3) -> Vec3:
     """Camera position in the local frame: -R^T t (paper Sec. III-D)."""
     return -R_cam_from_local.T @ t_cam_from_local
 
 
 def rotation_angle_rad(R_a: Rotation, R_b: Rotation) -> float:
-    """Angle of the relative rotation R_a^T R_b, in radians (0 for equal rotations)."""
-    cos_angle = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
-    return float(math.acos(min(1.0, max(-1.0, cos_angle))))
+    """Angle of the relative rotation R_a^T R_b, in radians (0 for equal rotations): the norm of its rotation
+    vector, from the quaternion (2 atan2(|v|, w)); acos of the trace loses half the digits near 0 (an angle
+    of 1e-8 rad reads as 0)."""
+    return float(np.linalg.norm(rvec_from_rotation(R_a.T @ R_b)))
+
+
+def pose_distance(R_a: Rotation, centre_a: Vec3, R_b: Rotation, centre_b: Vec3) -> tuple[float, float]:
+    """(distance between the camera centres in m, angle of the relative rotation in deg) of two poses: the
+    one measure of how far apart two poses are (selection, validation, the daemon's change policy)."""
+    return float(np.linalg.norm(centre_a - centre_b)), math.degrees(rotation_angle_rad(R_a, R_b))
 
 
 def rotation_from_rvec(rvec: FloatArray) -> Rotation:

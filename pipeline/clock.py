@@ -35,7 +35,7 @@ from pipeline.camera import CameraModel, rotation_from_rvec, rvec_from_rotation
 from pipeline.grouping import GroupingParams, group_hypotheses
 from pipeline.hypotheses import Hypothesis, HypothesisSet
 from pipeline.tracking import FrameBoxes
-from pipeline.vehicle import body_centers
+from pipeline.vehicle import body_centres
 from schemas.common import VehicleProfile
 
 _LM_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-10)
@@ -98,7 +98,7 @@ def track_velocity(track: MatchedTrack, rows: IntArray | None = None) -> FloatAr
 
 def shifted(hypothesis: Hypothesis, velocity: FloatArray, shift_s: float) -> Hypothesis:
     """The hypothesis with its camera moved back by `velocity * shift_s` (rotation kept)."""
-    centre = hypothesis.camera_center - velocity * shift_s
+    centre = hypothesis.camera_centre - velocity * shift_s
     return dataclasses.replace(hypothesis, t_cam_from_local=-hypothesis.R_cam_from_local @ centre)
 
 
@@ -111,8 +111,8 @@ def refitted(
     if not hypothesis.solver.startswith(("epnp", "sqpnp")):
         return hypothesis
     rows = np.flatnonzero(hypothesis.inliers)
-    points = body_centers(track.poses[rows], vehicle)
-    pixels = track.box_centers[rows]
+    points = body_centres(track.poses[rows], vehicle)
+    pixels = track.box_centres[rows]
     try:
         rvec, tvec = cv2.solvePnPRefineLM(
             points,
@@ -158,7 +158,7 @@ def scan_clock(
             for h in hypotheses
             if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
         )
-        centres.append({h.track_id: h.camera_center for h in trial})
+        centres.append({h.track_id: h.camera_centre for h in trial})
         result = group_hypotheses(HypothesisSet(trial, {}), tracks, frames, camera, vehicle, grouping)
         if result.groups:
             group = result.groups[0]

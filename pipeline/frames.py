@@ -126,7 +126,10 @@ def poses_from_v2x(messages: Sequence[V2xPosition], frame: UtmFrame) -> tuple[li
 def v2x_from_pose(
     pose: VehiclePose, frame: UtmFrame, station_id: int, speed_mps: float, **extra: float | None
 ) -> V2xPosition:
-    """VehiclePose in UTM -> V2X position with a true-north heading (what a calibration vehicle sends)."""
+    """VehiclePose in UTM -> V2X position with a true-north heading (what a calibration vehicle sends).
+
+    The inverse of pose_from_v2x, used by the tests only: the oracle for the round trip and for the
+    simulator's own batch conversion (sim/simulate.py, which may not import the pipeline)."""
     lat, lon = frame.to_wgs84(np.array([pose.x]), np.array([pose.y]))
     heading = frame.heading_from_yaw(np.array([pose.yaw]), lat, lon)
     heading_deg = float(heading[0])

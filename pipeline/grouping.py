@@ -22,8 +22,9 @@ from pipeline.association import MatchedTrack
 from pipeline.camera import CameraModel, project_points_cam, undistort_pixels
 from pipeline.errors import InputError
 from pipeline.hypotheses import Hypothesis, HypothesisSet
+from pipeline.stage import Reason
 from pipeline.tracking import FrameBoxes
-from pipeline.vehicle import body_centers
+from pipeline.vehicle import body_centres
 from schemas.common import VehicleProfile
 
 
@@ -56,7 +57,7 @@ class HypothesisGroup:
     correspondences: the members' inlier rows (`Hypothesis.inliers`) summed."""
 
     track_ids: tuple[int, ...]
-    camera_center: Vec3
+    camera_centre: Vec3
     mean_overlap_ratio: float
     correspondences: int = 0
 
@@ -71,7 +72,7 @@ class GroupingResult:
     """
 
     groups: tuple[HypothesisGroup, ...]
-    discarded: Mapping[int, str]  # track_id -> reason
+    discarded: Mapping[int, Reason]  # track_id -> reason
     r_out: FloatArray
     r_ov: FloatArray
     r_sim: FloatArray
@@ -137,21 +138,21 @@ def group_hypotheses(
     )
     np.fill_diagonal(is_edge, False)
 
-    centers = np.stack([h.camera_center for h in items])
-    discarded: dict[int, str] = {}
+    centres = np.stack([h.camera_centre for h in items])
+    discarded: dict[int, Reason] = {}
     member_sets: list[list[int]] = []
     for isolated in np.flatnonzero(~is_edge.any(axis=1)):
         i = int(isolated)
         closest = _closest_partner(i, worst_out, worst_ov, r_sim, simultaneous, track_ids)
-        discarded[track_ids[i]] = "isolated: no similar hypothesis" + closest
+        discarded[track_ids[i]] = Reason("isolated", "isolated: no similar hypothesis", detail=closest)
     _, component = connected_components(csr_matrix(is_edge), directed=False)
     for label in np.unique(component):
         members = np.flatnonzero(component == label)
         if len(members) < 2:
             continue  # isolated, reported above
-        member_sets.extend(_cluster_component(members, centers, is_edge, params, track_ids, discarded))
+        member_sets.extend(_cluster_component(members, centres, is_edge, params, track_ids, discarded))
 
-    groups = [_make_group(members, items, centers, r_ov, track_ids) for members in member_sets]
+    groups = [_make_group(members, items, centres, r_ov, track_ids) for members in member_sets]
     groups.sort(key=_group_rank)
     return GroupingResult(tuple(groups), discarded, r_out, r_ov, r_sim, track_ids)
 
@@ -177,7 +178,7 @@ def _simultaneous(items: Sequence[Hypothesis], tracks: Mapping[int, MatchedTrack
 def _track_view(
     track: MatchedTrack, boxes_by_stamp: Mapping[int, Boxes], vehicle: VehicleProfile
 ) -> _TrackView:
-    positions = body_centers(track.poses, vehicle)
+    positions = body_centres(track.poses, vehicle)
     per_row = [boxes_by_stamp.get(int(stamp), np.zeros((0, 4))) for stamp in track.stamps]
     width = max((len(b) for b in per_row), default=0)
     frame_boxes = np.full((len(per_row), max(width, 1), 4), np.nan)
@@ -274,11 +275,11 @@ def _closest_partner(
 
 def _cluster_component(
     members: IntArray,
-    centers: Points3,
+    centres: Points3,
     is_edge: BoolArray,
     params: GroupingParams,
     track_ids: tuple[int, ...],
-    discarded: dict[int, str],
+    discarded: dict[int, Reason],
 ) -> list[list[int]]:
     """DBSCAN on the camera centres of one connected component (paper III-E), then each cluster split into
     its similarity-connected pieces.
@@ -287,15 +288,19 @@ def _cluster_component(
     the scores together (e.g. followers at different gaps, each linked to the truth) could share a
     cluster merely by sitting a few metres apart. A group is kept only where similarity links it.
     """
-    labels = dbscan_labels(centers[members], params.dbscan_eps_m, params.dbscan_min_samples)
+    labels = dbscan_labels(centres[members], params.dbscan_eps_m, params.dbscan_min_samples)
     pieces: list[list[int]] = []
     for label in np.unique(labels):
         cluster = members[labels == label]
         if label == -1:
             for i in cluster:
-                discarded[track_ids[i]] = (
-                    f"DBSCAN noise: camera position more than {params.dbscan_eps_m} m from the "
-                    "positions of similar hypotheses"
+                discarded[track_ids[i]] = Reason(
+                    "dbscan_noise",
+                    "DBSCAN noise: camera position more than {limit} m from the positions of similar "
+                    "hypotheses",
+                    "distance to similar hypotheses' camera positions",
+                    limit=params.dbscan_eps_m,
+                    unit="m",
                 )
             continue
         _, piece_of = connected_components(csr_matrix(is_edge[np.ix_(cluster, cluster)]), directed=False)
@@ -304,8 +309,9 @@ def _cluster_component(
             if len(piece_members) >= 2:
                 pieces.append([int(i) for i in piece_members])
             else:
-                discarded[track_ids[piece_members[0]]] = (
-                    "alone in its DBSCAN cluster: no similar hypothesis with a nearby camera position"
+                discarded[track_ids[piece_members[0]]] = Reason(
+                    "alone_in_cluster",
+                    "alone in its DBSCAN cluster: no similar hypothesis with a nearby camera position",
                 )
     return pieces
 
@@ -323,7 +329,7 @@ def _group_rank(group: HypothesisGroup) -> tuple[int, int, float, tuple[int, ...
 def _make_group(
     members: list[int],
     items: Sequence[Hypothesis],
-    centers: Points3,
+    centres: Points3,
     r_ov: FloatArray,
     track_ids: tuple[int, ...],
 ) -> HypothesisGroup:
@@ -332,7 +338,7 @@ def _make_group(
     off_diagonal = overlap[~np.eye(len(index), dtype=bool)]
     return HypothesisGroup(
         track_ids=tuple(track_ids[i] for i in index),
-        camera_center=centers[index].mean(axis=0),
+        camera_centre=centres[index].mean(axis=0),
         mean_overlap_ratio=float(off_diagonal.mean()) if off_diagonal.size else 0.0,
         correspondences=int(sum(int(items[i].inliers.sum()) for i in index)),
     )

@@ -23,12 +23,13 @@ from pipeline.arrays import FloatArray, Mask, Pixels, Points3, Rotation, Vec3
 from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     project_points,
     rotation_from_rvec,
     rvec_from_rotation,
 )
 from pipeline.ground import GroundPlaneFit
+from pipeline.stage import Reason
 from pipeline.straight_track import (
     StraightTrackParams,
     TrackShape,
@@ -36,7 +37,7 @@ from pipeline.straight_track import (
     solve_straight_track,
     track_line,
 )
-from pipeline.vehicle import body_centers
+from pipeline.vehicle import body_centres
 from schemas.common import VehicleProfile
 
 # LM runs until the step is negligible: EPnP and SQPnP undistort with OpenCV's approximate inverse and
@@ -117,15 +118,15 @@ class Hypothesis:
     solver: str = "epnp"
 
     @property
-    def camera_center(self) -> Vec3:
+    def camera_centre(self) -> Vec3:
         """Camera position in the local frame (m): -R^T t (paper III-D)."""
-        return camera_center(self.R_cam_from_local, self.t_cam_from_local)
+        return camera_centre(self.R_cam_from_local, self.t_cam_from_local)
 
 
 @dataclass(frozen=True, slots=True)
 class HypothesisSet:
     hypotheses: tuple[Hypothesis, ...]
-    rejected: Mapping[int, str]  # track_id -> reason; nothing disappears silently
+    rejected: Mapping[int, Reason]  # track_id -> reason; nothing disappears silently
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,7 +150,7 @@ def create_hypotheses(
     """One EPnP + RANSAC camera pose per matched track, filtered as in paper III-D.
 
     Correspondences: box centre (px, distorted image) <-> body-box centre of the vehicle (local frame, m,
-    `vehicle.body_centers`); lens distortion is honoured (OpenCV undistorts inside solvePnP*).
+    `vehicle.body_centres`); lens distortion is honoured (OpenCV undistorts inside solvePnP*).
     `trajectory` is the whole driven path for the d_thr test; without it the tracks' own poses stand in
     (shorter, so stricter). `ground` gives the camera height. Randomness: one OpenCV RNG seed per track
     drawn from `rng`, so results depend on `rng` alone. Returns hypotheses in track order and a reason for
@@ -158,12 +159,12 @@ def create_hypotheses(
     """
     path = _driven_path(_path_xy(tracks, trajectory))
     hypotheses: list[Hypothesis] = []
-    rejected: dict[int, str] = {}
+    rejected: dict[int, Reason] = {}
     # Seeds are drawn in track order up front, so each track's seed does not depend on others' outcome.
     seeds = [int(rng.integers(0, 2**31 - 1)) for _ in tracks]
     fit = _TrackFit(camera, vehicle, ground, path, params)
     for track, outcome in zip(tracks, map_fn(fit, tracks, seeds), strict=True):
-        if isinstance(outcome, str):
+        if isinstance(outcome, Reason):
             rejected[track.track_id] = outcome
         else:
             hypotheses.append(outcome)
@@ -255,7 +256,7 @@ class _TrackFit:
     path: _DrivenPath
     params: HypothesisParams
 
-    def __call__(self, track: MatchedTrack, seed: int) -> Hypothesis | str:
+    def __call__(self, track: MatchedTrack, seed: int) -> Hypothesis | Reason:
         return _hypothesis_for(track, self.camera, self.vehicle, self.ground, self.path, self.params, seed)
 
 
@@ -267,40 +268,73 @@ def _hypothesis_for(
     path: _DrivenPath,
     params: HypothesisParams,
     seed: int,
-) -> Hypothesis | str:
+) -> Hypothesis | Reason:
     """The hypothesis of one track, or the reason it is rejected."""
     count = len(track.stamps)
     if count < params.min_correspondences:
-        return f"too few correspondences: {count} < {params.min_correspondences}"
-    pixels = track.box_centers
-    points = body_centers(track.poses, vehicle)
+        return Reason(
+            "too_few_correspondences",
+            "too few correspondences: {value} < {limit}",
+            "correspondences",
+            count,
+            params.min_correspondences,
+            value_format="d",
+        )
+    pixels = track.box_centres
+    points = body_centres(track.poses, vehicle)
     if not (np.all(np.isfinite(pixels)) and np.all(np.isfinite(points))):
-        return "degenerate: non-finite boxes or poses"
+        return Reason("non_finite", "degenerate: non-finite boxes or poses")
     image_extent = _extent(pixels)
     if image_extent < params.min_image_extent_px:
-        return (
-            f"not moving in the image: box centres span {image_extent:.1f} px "
-            f"< {params.min_image_extent_px} px"
+        return Reason(
+            "not_moving_in_image",
+            "not moving in the image: box centres span {value} px < {limit} px",
+            "box centre extent",
+            image_extent,
+            params.min_image_extent_px,
+            "px",
         )
     track_extent = _extent(points[:, :2])
     if track_extent < params.min_track_extent_m:
-        return f"vehicle not moving: track spans {track_extent:.2f} m < {params.min_track_extent_m} m"
+        return Reason(
+            "vehicle_not_moving",
+            "vehicle not moving: track spans {value} m < {limit} m",
+            "track extent",
+            track_extent,
+            params.min_track_extent_m,
+            "m",
+            ".2f",
+        )
 
     shape = TrackShape(track.boxes, track.poses, vehicle)
     fit = _fit_track(points, pixels, shape, camera, ground, params, seed, track_extent)
-    if isinstance(fit, str):
+    if isinstance(fit, Reason):
         return fit
     solved, errors, median_px, rotation_std_deg = fit
     inliers = errors <= params.reproj_threshold_px
     R = rotation_from_rvec(solved.rvec)
     t = solved.tvec.reshape(3).copy()
-    center = camera_center(R, t)
-    distance_m = _distance_to_path(center[:2], path)
+    centre = camera_centre(R, t)
+    distance_m = _distance_to_path(centre[:2], path)
     if not distance_m <= params.max_camera_distance_m:
-        return f"camera {distance_m:.1f} m from the driven path > {params.max_camera_distance_m} m"
-    height_m = float(ground.height_of(center[None, :])[0])
+        return Reason(
+            "far_from_path",
+            "camera {value} m from the driven path > {limit} m",
+            "camera distance from the driven path",
+            distance_m,
+            params.max_camera_distance_m,
+            "m",
+        )
+    height_m = float(ground.height_of(centre[None, :])[0])
     if height_m < params.min_camera_height_m:
-        return f"camera {height_m:.1f} m above ground < {params.min_camera_height_m} m (below the road)"
+        return Reason(
+            "below_road",
+            "camera {value} m above ground < {limit} m (below the road)",
+            "camera height above ground",
+            height_m,
+            params.min_camera_height_m,
+            "m",
+        )
     return Hypothesis(
         track_id=track.track_id,
         R_cam_from_local=R,
@@ -321,7 +355,7 @@ def _fit_track(
     params: HypothesisParams,
     seed: int,
     track_extent_m: float,
-) -> tuple[_Pose, FloatArray, float, float] | str:
+) -> tuple[_Pose, FloatArray, float, float] | Reason:
     """Pose, per-row reprojection errors (px), their median and the rotation 1-sigma (deg); or a reason.
 
     The paper's unconstrained EPnP + RANSAC first; when the track leaves the pose unfixed (a straight
@@ -329,11 +363,18 @@ def _fit_track(
     when it fixes the pose only weakly, whichever of the two reproduces the boxes' shape better.
     """
     line_residual_m = _line_residual(points)
-    degenerate: str
+    degenerate: Reason
     if line_residual_m <= 1e-3 * track_extent_m:
         # Exactly collinear: OpenCV may raise, loop or return any member of the family of poses about
         # the line, so the unconstrained solvers are not even tried.
-        degenerate = f"degenerate: straight-line track (within {line_residual_m:.3f} m of a line)"
+        degenerate = Reason(
+            "straight_line",
+            "degenerate: straight-line track (within {value} m of a line)",
+            "distance from a line",
+            line_residual_m,
+            unit="m",
+            value_format=".3f",
+        )
         bases: list[_Pose] = []
     else:
         solved = _solve(points, pixels, camera, params, seed)
@@ -341,7 +382,7 @@ def _fit_track(
             errors = _reprojection_errors(points, pixels, solved.rvec, solved.tvec, camera)
             median_px = float(np.median(errors))
             if not median_px <= params.max_median_reproj_px:
-                return f"median reprojection error {median_px:.1f} px > {params.max_median_reproj_px} px"
+                return _reprojection_reason(median_px, params)
             inliers = errors <= params.reproj_threshold_px
             rotation_std_deg = _rotation_std_deg(points[inliers], pixels[inliers], solved, camera)
             if rotation_std_deg <= params.max_rotation_std_deg:
@@ -356,9 +397,14 @@ def _fit_track(
                 ):
                     return free
                 return level
-            degenerate = (
-                f"degenerate: rotation not fixed by the track (1-sigma {rotation_std_deg:.1f} deg > "
-                f"{params.max_rotation_std_deg} deg; straight-line track?)"
+            degenerate = Reason(
+                "rotation_not_fixed",
+                "degenerate: rotation not fixed by the track (1-sigma {value} deg > {limit} deg; "
+                "straight-line track?)",
+                "rotation 1-sigma",
+                rotation_std_deg,
+                params.max_rotation_std_deg,
+                "deg",
             )
             bases = [solved]
         else:
@@ -367,7 +413,7 @@ def _fit_track(
         return degenerate
     level = _checked_level(points, pixels, shape, camera, ground, bases, params, seed)
     if isinstance(level, str):
-        return f"{degenerate}; straight-track fit: {level}"
+        return degenerate.with_detail(f"; straight-track fit: {level}")
     return level
 
 
@@ -415,7 +461,7 @@ def _checked_level(
     if min(base_medians) > 2.0 * params.max_median_reproj_px:
         return f"start misses by a median {min(base_medians):.1f} px"
     rotations = [rotation_from_rvec(base.rvec) for base in candidates]
-    starts = [(R, camera_center(R, base.tvec)) for R, base in zip(rotations, candidates, strict=True)]
+    starts = [(R, camera_centre(R, base.tvec)) for R, base in zip(rotations, candidates, strict=True)]
     fit = solve_straight_track(
         points,
         (origin, direction),
@@ -432,7 +478,7 @@ def _checked_level(
     errors = _reprojection_errors(points, pixels, level.rvec, level.tvec, camera)
     median_px = float(np.median(errors))
     if not median_px <= params.max_median_reproj_px:
-        return f"median reprojection error {median_px:.1f} px > {params.max_median_reproj_px} px"
+        return _reprojection_reason(median_px, params).render()
     if not fit.rotation_std_deg <= params.max_rotation_std_deg:
         return f"1-sigma {fit.rotation_std_deg:.1f} deg"
     return level, errors, median_px, fit.rotation_std_deg
@@ -441,12 +487,12 @@ def _checked_level(
 def _box_misfit(pose: _Pose, shape: TrackShape, camera: CameraModel) -> float:
     """How badly the pose reproduces the track's boxes (`pipeline.straight_track.pose_box_misfit`)."""
     R = rotation_from_rvec(pose.rvec)
-    return pose_box_misfit(R, camera_center(R, pose.tvec), shape, camera)
+    return pose_box_misfit(R, camera_centre(R, pose.tvec), shape, camera)
 
 
 def _solve(
     points: Points3, pixels: Pixels, camera: CameraModel, params: HypothesisParams, seed: int
-) -> _Pose | str:
+) -> _Pose | Reason:
     """EPnP + RANSAC (paper III-D), then the best of several refits on the inliers; or a reason.
 
     EPnP is unstable on the (near-)coplanar, near-collinear points a vehicle on a flat road gives: on
@@ -471,19 +517,21 @@ def _solve(
             flags=cv2.SOLVEPNP_EPNP,
         )
     except cv2.error as err:
-        return f"degenerate: EPnP + RANSAC failed ({_cv2_message(err)})"
+        return Reason("epnp_failed", "degenerate: EPnP + RANSAC failed", detail=f" ({_cv2_message(err)})")
     if not found or inlier_index is None or len(inlier_index) < 4:
-        return "no camera pose fits: RANSAC found no consensus of 4 or more correspondences"
+        return Reason(
+            "no_consensus", "no camera pose fits: RANSAC found no consensus of 4 or more correspondences"
+        )
     candidates: list[_Pose] = []
     if not _append_finite(candidates, rvec, tvec, "epnp"):
-        return "degenerate: EPnP returned a non-finite pose"
+        return Reason("epnp_non_finite", "degenerate: EPnP returned a non-finite pose")
     selected = np.asarray(inlier_index, dtype=np.int64).reshape(-1)
     if params.refine_on_inliers:
         candidates.extend(_refits(points[selected], pixels[selected], candidates[0], camera))
     rms = [_rms(points[selected], pixels[selected], pose, camera) for pose in candidates]
     best = int(np.argmin(rms))
     if not math.isfinite(rms[best]):
-        return "degenerate: no candidate pose has the inliers in front of the camera"
+        return Reason("behind_camera", "degenerate: no candidate pose has the inliers in front of the camera")
     return candidates[best]
 
 
@@ -577,3 +625,14 @@ def _cv2_message(err: cv2.error) -> str:
     """The first line of an OpenCV error, without its source path."""
     text = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
     return text[-200:]
+
+
+def _reprojection_reason(median_px: float, params: HypothesisParams) -> Reason:
+    return Reason(
+        "reprojection_error",
+        "median reprojection error {value} px > {limit} px",
+        "median reprojection error",
+        median_px,
+        params.max_median_reproj_px,
+        "px",
+    )

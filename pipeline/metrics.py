@@ -21,18 +21,14 @@ from pipeline.arrays import (
     FloatArray,
     IntArray,
     Mask,
-    Pixels,
-    Points3,
     Rotation,
     Stamps,
     Vec3,
     as_float_array,
-    check_shape,
 )
 from pipeline.camera import (
     CameraModel,
-    camera_center,
-    project_points,
+    camera_centre,
     quaternion_wxyz_from_rotation,
     rotation_angle_rad,
     undistort_pixels,
@@ -40,10 +36,9 @@ from pipeline.camera import (
 from pipeline.errors import InputError, ShapeError
 from pipeline.frames import UtmFrame
 from pipeline.ground import GroundPlaneFit
+from pipeline.tracking import touches_border
 from schemas.files import GroundTruth
 from schemas.results import CalibrationResult, CameraPosition, Provenance, ReferenceFrame, Verdict
-
-CORNER_NAMES = ("rear-right", "front-right", "front-left", "rear-left")
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,18 +119,6 @@ def _footprint_planes(footprints: Corners) -> tuple[FloatArray, FloatArray]:
     return normal, offset
 
 
-def touches_border(boxes: Boxes, width: int, height: int, margin_px: float = 3.0) -> Mask:
-    """Boxes (N, 4) with any edge within `margin_px` of the image border (clipped by the detector): (N,)."""
-    check_shape(boxes, "N,4", name="boxes")
-    return np.asarray(
-        (boxes[:, 0] <= margin_px)
-        | (boxes[:, 1] <= margin_px)
-        | (boxes[:, 2] >= width - margin_px)
-        | (boxes[:, 3] >= height - margin_px),
-        dtype=np.bool_,
-    )
-
-
 def back_project_bottom_edges(
     boxes: Boxes,
     R_cam_from_local: Rotation,
@@ -156,7 +139,7 @@ def back_project_bottom_edges(
     rays_cam = np.column_stack([xy, np.ones(len(xy))])
     # Row-vector form of R^T d: camera-frame ray directions in the local frame.
     rays_local = (rays_cam @ R_cam_from_local).reshape(n, samples, 3)
-    centre = camera_center(R_cam_from_local, t_cam_from_local)
+    centre = camera_centre(R_cam_from_local, t_cam_from_local)
     denom = np.einsum("nsj,nj->ns", rays_local, normals)
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (offsets - normals @ centre)[:, None] / denom
@@ -250,33 +233,9 @@ def delta_p(
         rows = np.arange(len(best))
         delta[valid] = per_corner[rows, best]
         corner[valid] = best
-        centre = camera_center(R, t)
+        centre = camera_centre(R, t)
         distance[valid] = np.linalg.norm(footprints[valid][rows, best] - centre, axis=1)
     return BoxErrors(delta, distance, corner, valid, clipped, misses)
-
-
-def reprojection_rmse(
-    points_local: Points3,
-    pixels: Pixels,
-    R_cam_from_local: Rotation,
-    t_cam_from_local: Vec3,
-    camera: CameraModel,
-) -> float:
-    """Root mean square pixel distance between projected points (N, 3, local) and observed pixels (N, 2).
-
-    inf when any point is behind the camera (such a calibration does not explain the observation at all);
-    NaN for N = 0.
-    """
-    check_shape(points_local, "N,3", name="points_local")
-    check_shape(pixels, "N,2", name="pixels")
-    if len(points_local) != len(pixels):
-        raise ShapeError(f"pixels: expected {len(points_local)} rows like points_local, got {len(pixels)}")
-    if len(points_local) == 0:
-        return math.nan
-    projected, depth = project_points(points_local, R_cam_from_local, t_cam_from_local, camera)
-    if np.any(depth <= 0.0):
-        return math.inf
-    return float(np.sqrt(np.mean(np.sum((projected - pixels) ** 2, axis=1))))
 
 
 @dataclass(frozen=True, slots=True)
@@ -385,7 +344,7 @@ def evaluate_against_ground_truth(
         errors = delta_p(boxes, footprints, R, t, camera, params=params)
         summary = summarize(errors)
         R_truth = np.asarray(truth.R, dtype=np.float64)
-        centre_utm = camera_center(R, t) + np.asarray(truth.origin, dtype=np.float64)
+        centre_utm = camera_centre(R, t) + np.asarray(truth.origin, dtype=np.float64)
         error_vec = centre_utm - np.asarray(truth.camera_position_utm, dtype=np.float64)
         position_error = float(np.linalg.norm(error_vec))
         horizontal_error = float(np.linalg.norm(error_vec[:2]))

@@ -38,7 +38,7 @@ from pipeline.arrays import (
 from pipeline.association import MatchedTrack
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     distort_normalized,
     rotation_from_rvec,
     undistort_pixels,
@@ -88,7 +88,7 @@ class RefinementParams:
 class Refinement:
     """A refined camera pose with its uncertainty and per-box fit.
 
-    R_cam_from_local (3, 3), t_cam_from_local (3,) m, camera_center (3,) m, local frame.
+    R_cam_from_local (3, 3), t_cam_from_local (3,) m, camera_centre (3,) m, local frame.
     covariance: (6, 6) of [w (rad), camera centre (m)], local frame, w the small rotation of the camera's
         axes about its centre: R_local_from_cam = expm([w]x) R_est^T, i.e. R = R_est @ expm(-[w]x).
         Box noise (from the residuals) plus params.pose_bias_std_m^2 on the centre block; see _covariance.
@@ -113,7 +113,7 @@ class Refinement:
     method: Method
     R_cam_from_local: Rotation
     t_cam_from_local: Vec3
-    camera_center: Vec3
+    camera_centre: Vec3
     covariance: FloatArray
     position_std_m: float
     rotation_std_deg: float
@@ -179,7 +179,7 @@ def refine_bottom_edge(
     data = _stack_tracks(tracks, vehicle)
     _check_pose(R_cam_from_local, t_cam_from_local)
     R0 = np.asarray(R_cam_from_local, dtype=np.float64)
-    C0 = camera_center(R0, np.asarray(t_cam_from_local, dtype=np.float64))
+    C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
     usable = data.boxes[:, 3] < camera.height - params.border_margin_px  # a clipped bottom edge says nothing
     index = np.flatnonzero(usable)
     if len(index) < _N_PARAMS:
@@ -255,7 +255,7 @@ def refine_whole_box(
     data = _stack_tracks(tracks, vehicle)
     _check_pose(R_cam_from_local, t_cam_from_local)
     R0 = np.asarray(R_cam_from_local, dtype=np.float64)
-    C0 = camera_center(R0, np.asarray(t_cam_from_local, dtype=np.float64))
+    C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
     edge_used = ~_clipped_edges(data.boxes, camera, params.border_margin_px)
     if int(edge_used.sum()) < _N_PARAMS:
         raise DegenerateGeometry(
@@ -699,7 +699,7 @@ def box_residuals(
     """
     data = _stack_tracks(tracks, vehicle)
     _check_pose(R_cam_from_local, t_cam_from_local)
-    C = camera_center(R_cam_from_local, t_cam_from_local)
+    C = camera_centre(R_cam_from_local, t_cam_from_local)
     residuals = _model_boxes(data.corners, R_cam_from_local, C, camera, params.min_depth_m) - data.boxes
     residuals[_clipped_edges(data.boxes, camera, params.border_margin_px)] = np.nan
     return residuals, data.boxes[:, 3] - data.boxes[:, 1]
@@ -763,7 +763,7 @@ def _make_result(
         method=method,
         R_cam_from_local=R,
         t_cam_from_local=t,
-        camera_center=C,
+        camera_centre=C,
         covariance=cov,
         position_std_m=math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:])[-1]), 0.0)),
         rotation_std_deg=math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3])[-1]), 0.0))),

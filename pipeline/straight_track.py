@@ -698,9 +698,9 @@ def _family_poses(
 
 
 def _level_members(
-    R: Rotation, center: Vec3, origin: Vec3, direction: Vec3, up: Vec3, roll: float
+    R: Rotation, centre: Vec3, origin: Vec3, direction: Vec3, up: Vec3, roll: float
 ) -> tuple[float, list[tuple[Rotation, Vec3]]]:
-    """Members of the pose family about the line (origin, direction) through the pose (R, center) whose
+    """Members of the pose family about the line (origin, direction) through the pose (R, centre) whose
     image is rolled by `roll` (rad) about the ground normal `up`: (sensitivity, [(R_cam_from_local,
     camera centre)]).
 
@@ -724,7 +724,7 @@ def _level_members(
         turn = rotation_from_rvec(direction * angle)
         R_member = R @ turn.T
         if (sin_roll * R_member[0] + cos_roll * R_member[1]) @ up < 0.0:  # the image's down is world down
-            members.append((R_member, origin + turn @ (center - origin)))
+            members.append((R_member, origin + turn @ (centre - origin)))
     return sensitivity, members
 
 

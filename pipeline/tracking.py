@@ -85,8 +85,11 @@ def frames_from_detections(frames: Sequence[DetectionFrame]) -> list[FrameBoxes]
     return result
 
 
-def _overlap_terms(a: Boxes, b: Boxes) -> tuple[FloatArray, FloatArray]:
-    """IoU (N, M) and the DIoU penalty d^2 / c^2 (N, M) of every pair, by broadcasting.
+def overlap_terms(a: Boxes, b: Boxes) -> tuple[FloatArray, FloatArray]:
+    """IoU (N, M) and the DIoU penalty d^2 / c^2 (N, M) of every pair of boxes (N, 4), (M, 4) px x1, y1, x2,
+    y2, by broadcasting. Distance-IoU (Zheng et al. 2020; paper III-C) is IoU - penalty, with d the distance
+    of the box centres and c the diagonal of the smallest box enclosing both: in (-1, 1], so the association
+    cost 1 - DIoU lies in [0, 2).
 
     Written for the tracker's hot loop (tens of boxes, every frame): few temporaries, no masked divides.
     """
@@ -111,30 +114,15 @@ def _overlap_terms(a: Boxes, b: Boxes) -> tuple[FloatArray, FloatArray]:
     return iou, penalty
 
 
-def iou_matrix(a: Boxes, b: Boxes) -> FloatArray:
-    """Intersection over union of every pair: (N, 4), (M, 4) px x1, y1, x2, y2 -> (N, M) in [0, 1]."""
-    check_shape(a, "N,4", name="a")
-    check_shape(b, "M,4", name="b")
-    return _overlap_terms(a, b)[0]
-
-
-def diou_matrix(a: Boxes, b: Boxes) -> FloatArray:
-    """Distance-IoU of every pair (Zheng et al. 2020; paper III-C): IoU - d^2 / c^2 with d the distance of
-    the box centres and c the diagonal of the smallest box enclosing both. (N, 4), (M, 4) px -> (N, M) in
-    (-1, 1], so the association cost 1 - DIoU lies in [0, 2)."""
-    check_shape(a, "N,4", name="a")
-    check_shape(b, "M,4", name="b")
-    iou, penalty = _overlap_terms(a, b)
-    return iou - penalty
-
-
-def _border_mask(boxes: Boxes, width: int, height: int, margin_px: float) -> Mask:
-    """Boxes (N, 4) within `margin_px` of any image edge: clipped by the image, geometry not trustworthy."""
-    return (
+def touches_border(boxes: Boxes, width: int, height: int, margin_px: float) -> Mask:
+    """Boxes (N, 4) with any edge within `margin_px` of the image border: clipped by the image (or the
+    detector), their geometry not trustworthy: (N,). The one border test (tracking, metrics.delta_p)."""
+    return np.asarray(
         (boxes[:, 0] <= margin_px)
         | (boxes[:, 1] <= margin_px)
         | (boxes[:, 2] >= width - margin_px)
-        | (boxes[:, 3] >= height - margin_px)
+        | (boxes[:, 3] >= height - margin_px),
+        dtype=np.bool_,
     )
 
 
@@ -205,7 +193,7 @@ def track_boxes(frames: Sequence[FrameBoxes], width: int, height: int, params: T
             sizes = predicted[:, 2:] - predicted[:, :2]
             if sizes.min() < _MIN_PREDICTED_SIZE_PX:
                 predicted = _keep_min_size(predicted)
-            iou, penalty = _overlap_terms(predicted, boxes)
+            iou, penalty = overlap_terms(predicted, boxes)
             is_overlapping = iou > 0.0
             cost = np.where(is_overlapping, (1.0 + penalty) - iou, _NO_MATCH_COST)
             rows, cols = linear_sum_assignment(cost)
@@ -263,7 +251,7 @@ def _collect_tracks(
     all_boxes = np.concatenate([frame.boxes for frame in frames])
     all_classes = np.concatenate([frame.classes for frame in frames]).astype(np.int64)
     all_stamps = np.repeat(np.array([frame.stamp_ns for frame in frames], dtype=np.int64), counts)
-    is_border = _border_mask(all_boxes, width, height, margin_px)
+    is_border = touches_border(all_boxes, width, height, margin_px)
     border_count = int(np.count_nonzero(is_border))
     kept = np.flatnonzero(~is_border)
     if len(kept) == 0:

@@ -15,28 +15,8 @@ import numpy as np
 
 from pipeline.arrays import PoseArray, Rotation, Stamps, Vec3, check_shape
 from pipeline.camera import CameraModel, project_points
+from schemas.config import GatesConfig
 from schemas.results import Verdict
-
-
-@dataclass(frozen=True, slots=True)
-class ValidationGates:
-    """Defaults from docs/design.md; all configurable."""
-
-    min_traversals: int = 2
-    max_delta_p_mean_m: float = 0.5
-    min_camera_height_m: float = 2.0
-    max_camera_height_m: float = 60.0
-    max_position_std_m: float = 0.5
-    max_rotation_std_deg: float = 0.5
-    # The std gates hold at this many sigmas: a result is accepted only if its 3-sigma uncertainty lies
-    # inside the limits above. At 1 sigma a nearly degenerate scene (all passes along one straight road)
-    # with std 0.35 deg would pass while its pose is 0.5 deg off one time in three.
-    std_sigmas: float = 3.0
-    min_correspondences: int = 30
-    # Median over boxes of the worst edge misfit relative to the box height: detector noise gives ~1-4 %,
-    # 0.5 m GNSS noise ~10-15 %, another vehicle's track far more (its size and path do not fit the cuboid).
-    # A median is robust to the few foreign boxes an identity switch puts into a track.
-    max_box_error_pct: float = 25.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,8 +34,11 @@ class ValidationEvidence:
     extra_reasons: tuple[str, ...] = ()
 
 
-def validate(evidence: ValidationEvidence, gates: ValidationGates) -> Verdict:
-    """Apply every gate; accepted only if all pass. Reasons name the quantity, its value and the limit."""
+def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:
+    """Apply every gate; accepted only if all pass. Reasons name the quantity, its value and the limit.
+
+    The gates are the daemon's configuration model (schemas.config.GatesConfig, the one definition of their
+    fields and defaults); `rsucal calibrate` and the benchmarks use its defaults."""
     reasons: list[str] = list(evidence.extra_reasons)
     e, g = evidence, gates
     if e.traversals < max(2, g.min_traversals):
@@ -113,9 +96,9 @@ def count_traversals(
     if not track_spans:
         return 0
     spans = sorted(track_spans)
-    camera_center = -R_cam_from_local.T @ t_cam_from_local
+    camera_centre = -R_cam_from_local.T @ t_cam_from_local
     pixels, depth = project_points(trajectory_poses[:, :3], R_cam_from_local, t_cam_from_local, camera)
-    distance = np.linalg.norm(trajectory_poses[:, :3] - camera_center, axis=1)
+    distance = np.linalg.norm(trajectory_poses[:, :3] - camera_centre, axis=1)
     with np.errstate(invalid="ignore"):
         in_view = (
             (depth > 0)

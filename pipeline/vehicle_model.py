@@ -23,7 +23,7 @@ So the pose is fitted jointly with the unknowns it would otherwise absorb, each 
 Box size changes tenfold along a drive-past, so metric shape and pixel convention separate; what the data
 cannot separate from the pose shows up in the pose's marginal covariance, the block of the full inverse with
 the nuisance parameters included (their priors keep it finite). Whether the template, the convention and
-the time shift are needed at all is decided in calibrate._final_fit (cross-validation, significance).
+the time shift are needed at all is decided in final_fit.final_fit (cross-validation, significance).
 
 Uncertainty: detector errors are correlated over consecutive frames (a box edge stays a few pixels off for
 a second) and GNSS errors drift, so independent-residual least squares overstates the information many times.
@@ -44,7 +44,7 @@ from scipy.optimize import least_squares, nnls
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, Stamps, Vec3
 from pipeline.association import MatchedTrack, Trajectory, select_rows
-from pipeline.camera import CameraModel, camera_center, rotation_from_ypr, rvec_from_rotation
+from pipeline.camera import CameraModel, camera_centre, rotation_from_ypr, rvec_from_rotation
 from pipeline.errors import DegenerateGeometry
 from pipeline.refinement import (
     _camera_points,
@@ -126,7 +126,7 @@ class ModelFit:
 
     R_cam_from_local: Rotation
     t_cam_from_local: Vec3
-    camera_center: Vec3
+    camera_centre: Vec3
     covariance: FloatArray
     position_std_m: float
     rotation_std_deg: float
@@ -257,7 +257,7 @@ def fit_vehicle_model(
             f"joint fit: {int(data.used.sum())} unclipped box edges, need >= {2 * N_PARAMS}"
         )
     R0 = np.asarray(R_cam_from_local, dtype=np.float64)
-    C0 = camera_center(R0, np.asarray(t_cam_from_local, dtype=np.float64))
+    C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
     mean = np.zeros(N_PARAMS)
     mean[_SHAPE] = cuboid_shape(vehicle)
     prior_std = params.prior_std()
@@ -541,7 +541,7 @@ def _assemble(
     return ModelFit(
         R_cam_from_local=R,
         t_cam_from_local=-R @ C,
-        camera_center=C,
+        camera_centre=C,
         covariance=pose_cov,
         position_std_m=math.sqrt(max(float(np.linalg.eigvalsh(pose_cov[3:, 3:])[-1]), 0.0)),
         rotation_std_deg=math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(pose_cov[:3, :3])[-1]), 0.0))),
@@ -747,7 +747,7 @@ def check_traversals(
             continue
         # R = R_fit expm(-[w]x) (the convention of ModelFit.covariance)
         w = -rvec_from_rotation(fit.R_cam_from_local.T @ loo.R_cam_from_local)
-        dC = loo.camera_center - fit.camera_center
+        dC = loo.camera_centre - fit.camera_centre
         deltas.append(np.concatenate([w, dC]))
         shift, angle = float(np.linalg.norm(dC)), math.degrees(float(np.linalg.norm(w)))
         worst_shift, worst_angle = max(worst_shift, shift), max(worst_angle, angle)
@@ -873,7 +873,7 @@ def _model_of(
     x = np.zeros(N_PARAMS)
     x[_DELTA], x[_SHAPE], x[_BIAS] = fit.time_shift_s, fit.shape, fit.bias
     model = _Model(
-        data, sampler, fit.R_cam_from_local, fit.camera_center, camera, vehicle, params, x, params.prior_std()
+        data, sampler, fit.R_cam_from_local, fit.camera_centre, camera, vehicle, params, x, params.prior_std()
     )
     return model, x
 

@@ -149,6 +149,7 @@ class CalibrationVehicle(StrictModel):
     """A vehicle whose V2X positions are trusted for calibration: its station id and body."""
 
     station_id: int = Field(ge=0, le=4_294_967_295)
+    # `profile` is the rsu.yaml key (a published contract, kept); in code a VehicleProfile is `vehicle`.
     profile: VehicleProfile
     time_offset_ns: int = Field(
         default=0,
@@ -259,7 +260,8 @@ class IngestConfig(StrictModel):
 
 
 class GatesConfig(StrictModel):
-    """Validation gates before anything is published (docs/design.md defaults)."""
+    """Validation gates before anything is published (docs/design.md defaults); the one definition of the
+    gates: the pipeline's validation (pipeline.validation.validate) takes this model."""
 
     min_traversals: int = Field(default=2, ge=2, le=100)
     max_delta_p_mean_m: float = Field(default=0.5, gt=0.0, le=10.0, allow_inf_nan=False)
@@ -267,8 +269,14 @@ class GatesConfig(StrictModel):
     max_camera_height_m: float = Field(default=60.0, gt=0.0, le=1000.0, allow_inf_nan=False)
     max_position_std_m: float = Field(default=0.5, gt=0.0, le=100.0, allow_inf_nan=False)
     max_rotation_std_deg: float = Field(default=0.5, gt=0.0, le=90.0, allow_inf_nan=False)
+    # The std gates hold at this many sigmas: a result is accepted only if its 3-sigma uncertainty lies
+    # inside the limits above. At 1 sigma a nearly degenerate scene (all passes along one straight road)
+    # with std 0.35 deg would pass while its pose is 0.5 deg off one time in three.
     std_sigmas: float = Field(default=3.0, gt=0.0, le=10.0, allow_inf_nan=False)
     min_correspondences: int = Field(default=30, ge=4, le=1_000_000)
+    # Median over boxes of the worst edge misfit relative to the box height: detector noise gives ~1-4 %,
+    # 0.5 m GNSS noise ~10-15 %, another vehicle's track far more (its size and path do not fit the cuboid).
+    # A median is robust to the few foreign boxes an identity switch puts into a track.
     max_box_error_pct: float = Field(default=25.0, gt=0.0, le=100.0, allow_inf_nan=False)
 
     @model_validator(mode="after")

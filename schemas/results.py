@@ -167,6 +167,8 @@ class JobSummary(StrictModel):
     """The last calibration job of a camera."""
 
     job_id: str
+    # Published field names (wire contract, kept): a job's started_ns / finished_ns pair, where Health says
+    # started_at_ns / updated_at_ns; the daemon's variables follow the schema they fill.
     started_ns: StampNs
     finished_ns: StampNs | None = None
     duration_s: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
@@ -208,7 +210,7 @@ class Health(StrictModel):
     """What `rsu/{rsu}/health` answers: liveness details, counters, disk and versions."""
 
     rsu_id: Identifier
-    started_at_ns: StampNs
+    started_at_ns: StampNs  # published (kept): the job summary's start is started_ns (JobSummary)
     updated_at_ns: StampNs
     uptime_s: float = Field(ge=0.0, allow_inf_nan=False)
     cameras: list[str] = Field(default_factory=list)

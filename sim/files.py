@@ -8,7 +8,6 @@ against files they did not write.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 from pydantic import BaseModel
 
+from schemas.atomic import write_atomic
 from schemas.messages import DetectionFrame, VehiclePose
 
 if TYPE_CHECKING:
@@ -25,14 +25,8 @@ _YamlDumper: Any = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 
 def _write_atomic(path: Path, text: str) -> Path:
-    # Write beside the target, flush to disk, then rename: a crash never leaves a half-written file under
-    # the real name.
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    """A crash never leaves a half-written file under the real name (schemas.atomic)."""
+    write_atomic(path, text.encode("utf-8"))
     return path
 
 

@@ -49,5 +49,5 @@ class GeoFrame:
         lat0, lon0 = self.to_wgs84(east, north)
         lat1, lon1 = self.to_wgs84(east + _STEP_M * np.cos(yaw), north + _STEP_M * np.sin(yaw))
         azimuth, _, _ = self._geod.inv(lon0, lat0, lon1, lat1)
-        heading = np.mod(np.asarray(azimuth, dtype=np.float64), 360.0)
-        return np.asarray(np.where(heading >= 360.0, 0.0, heading), dtype=np.float64)
+        heading_deg = np.mod(np.asarray(azimuth, dtype=np.float64), 360.0)
+        return np.asarray(np.where(heading_deg >= 360.0, 0.0, heading_deg), dtype=np.float64)

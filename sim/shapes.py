@@ -30,23 +30,23 @@ def place_points(poses: FloatArray, points_body: FloatArray, anchor_body: FloatA
     return np.asarray(np.einsum("nij,kj->nki", R, relative) + poses[:, None, :3], dtype=np.float64)
 
 
-def reference_from_footprint_centre(centre_poses: FloatArray, profile: VehicleProfile) -> FloatArray:
+def reference_from_footprint_centre(centre_poses: FloatArray, vehicle: VehicleProfile) -> FloatArray:
     """Poses (N, 6) of the footprint centre (L/2, W/2, 0) -> poses (N, 6) of the reference point."""
-    anchor = np.array([profile.length / 2.0, profile.width / 2.0, 0.0])
-    reference = place_points(centre_poses, np.asarray([profile.imu_offset], dtype=np.float64), anchor)[:, 0]
+    anchor = np.array([vehicle.length / 2.0, vehicle.width / 2.0, 0.0])
+    reference = place_points(centre_poses, np.asarray([vehicle.imu_offset], dtype=np.float64), anchor)[:, 0]
     return np.column_stack([reference, centre_poses[:, 3:]])
 
 
-def cuboid_points(profile: VehicleProfile) -> FloatArray:
+def cuboid_points(vehicle: VehicleProfile) -> FloatArray:
     """The data-sheet box's 8 corners (8, 3) in the vehicle frame: base RR, FR, FL, RL, then the top."""
     return np.asarray(
-        UNIT_BOX_CORNERS * np.array([profile.length, profile.width, profile.height]), dtype=np.float64
+        UNIT_BOX_CORNERS * np.array([vehicle.length, vehicle.width, vehicle.height]), dtype=np.float64
     )
 
 
-def footprint_points(profile: VehicleProfile) -> FloatArray:
+def footprint_points(vehicle: VehicleProfile) -> FloatArray:
     """The data-sheet footprint's 4 corners (4, 3): rear-right, front-right, front-left, rear-left."""
-    return cuboid_points(profile)[:4]
+    return cuboid_points(vehicle)[:4]
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -186,7 +186,7 @@ def _instances(
     ground: GroundSurface,
     pose: CameraPose,
     lens: Lens,
-    profile: VehicleProfile,
+    calib_vehicle: VehicleProfile,
     windows: tuple[tuple[float, float], ...],
 ) -> tuple[Instances, _CalibrationTrack | None]:
     """All (frame, vehicle) pairs of one camera with the vehicle on the road at the frame's time and
@@ -201,7 +201,7 @@ def _instances(
         if last <= first:
             continue
         rows = np.arange(first, last)
-        centre = sample_vehicle(vehicle, times[rows], ground).center_poses
+        centre = sample_vehicle(vehicle, times[rows], ground).centre_poses
         # Mirrors and roof boxes reach a little beyond the data-sheet box: a generous sphere.
         radius = 0.5 * math.sqrt(vehicle.length**2 + (vehicle.width + 0.6) ** 2 + (vehicle.height + 0.5) ** 2)
         middle = centre[:, :3] + np.array([0.0, 0.0, 0.5 * vehicle.height])
@@ -209,7 +209,7 @@ def _instances(
         if vehicle.is_calibration:
             calib = _CalibrationTrack(
                 rows,
-                reference_from_footprint_centre(centre, profile),
+                reference_from_footprint_centre(centre, calib_vehicle),
                 _traversal_labels(times[rows], windows),
             )
         frames.append(rows[visible])
@@ -285,14 +285,14 @@ def _v2x_messages(
     speed: FloatArray,
     frame: GeoFrame,
     station_id: int,
-    profile: VehicleProfile,
+    calib_vehicle: VehicleProfile,
     accuracy_m: float,
 ) -> list[V2xPosition]:
     """The reported poses as V2X broadcasts: WGS84 position, true-north heading, the same stamps."""
     east = np.array([p.x for p in poses])
     north = np.array([p.y for p in poses])
     lat, lon = frame.to_wgs84(east, north)
-    heading = frame.true_heading_deg(east, north, np.array([p.yaw for p in poses]))
+    heading_deg = frame.true_heading_deg(east, north, np.array([p.yaw for p in poses]))
     accuracies = V2xAccuracies(horizontal_m=max(accuracy_m, 0.02), vertical_m=max(accuracy_m, 0.02))
     return [
         V2xPosition(
@@ -305,11 +305,11 @@ def _v2x_messages(
             speed=float(v),
             pitch=p.pitch,
             roll=p.roll,
-            length=profile.length,
-            width=profile.width,
+            length=calib_vehicle.length,
+            width=calib_vehicle.width,
             accuracies=accuracies,
         )
-        for p, la, lo, h, v in zip(poses, lat, lon, heading, speed, strict=True)
+        for p, la, lo, h, v in zip(poses, lat, lon, heading_deg, speed, strict=True)
     ]
 
 
@@ -355,13 +355,13 @@ def _calibration_body(config: ScenarioConfig, rng: np.random.Generator) -> tuple
         round(shape.width_m / 2.0, 3),
         base.imu_offset[2],
     )
-    profile = VehicleProfile(
+    calib_vehicle = VehicleProfile(
         length=round(shape.length_m, 3),
         width=round(shape.width_m, 3),
         height=round(shape.height_m, 3),
         imu_offset=imu,
     )
-    return shape, profile
+    return shape, calib_vehicle
 
 
 def _traffic_bodies(
@@ -442,7 +442,7 @@ def _cam_broadcasts(
     vehicle: SimVehicle,
     end_s: float,
     ground: GroundSurface,
-    profile: VehicleProfile,
+    calib_vehicle: VehicleProfile,
     origin: LocalOrigin,
     geo: GeoFrame,
     config: ScenarioConfig,
@@ -457,13 +457,13 @@ def _cam_broadcasts(
     period = 1.0 / gnss.fix_rate_hz
     fix_t = np.asarray(rng.uniform(0.0, period) + period * np.arange(math.floor(end_s / period)), np.float64)
     states = sample_vehicle(vehicle, fix_t, ground)
-    reference = reference_from_footprint_centre(states.center_poses, profile)
+    reference = reference_from_footprint_centre(states.centre_poses, calib_vehicle)
     track = measure_gnss(fix_t, reference[:, :3], reference[:, 3], states.speed, gnss, rng)
     sent = cam_generation(track.t_s, track.position, track.yaw, track.speed_mps, CamSpec())
     east = track.position[sent, 0] + origin.x
     north = track.position[sent, 1] + origin.y
     lat, lon = geo.to_wgs84(east, north)
-    heading = geo.true_heading_deg(east, north, track.yaw[sent])
+    heading_deg = geo.true_heading_deg(east, north, track.yaw[sent])
     stamps = start_ns + np.round(fix_t[sent] * 1e9).astype(np.int64) + config.pose.clock_offset_ns
     return [
         V2xPosition(
@@ -474,8 +474,8 @@ def _cam_broadcasts(
             alt=float(z + origin.z),
             heading_deg=float(h),
             speed=float(v),
-            length=profile.length,
-            width=profile.width,
+            length=calib_vehicle.length,
+            width=calib_vehicle.width,
             accuracies=V2xAccuracies(horizontal_m=float(sh), vertical_m=float(sv)),
         )
         for stamp, la, lo, z, h, v, sh, sv in zip(
@@ -483,7 +483,7 @@ def _cam_broadcasts(
             lat,
             lon,
             track.position[sent, 2],
-            heading,
+            heading_deg,
             track.speed_mps[sent],
             track.horizontal_std_m[sent],
             track.vertical_std_m[sent],
@@ -509,12 +509,12 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
     ground = GroundSurface.from_spec(world_ground(config), network)
     occluders = build_occluders(config.occluders, ground)
     world = WorldGeometry(lane_polylines(network, ground), occluders, ground)
-    calib_shape, profile = _calibration_body(config, _real_rng(seed, config.name, 0))
+    calib_shape, calib_vehicle = _calibration_body(config, _real_rng(seed, config.name, 0))
     traffic: TrafficResult = simulate_traffic(
         network,
         config.drive,
         config.traffic,
-        (profile.length, profile.width, profile.height),
+        (calib_vehicle.length, calib_vehicle.width, calib_vehicle.height),
         config.duration_s,
         rng["drive"],
         rng["traffic"],
@@ -528,7 +528,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
     # --- the vehicle's own pose reports (its IMU, 50 Hz: the toolbox's poses.yaml)
     pose_t = _pose_instants(traffic.end_s, config.pose, rng["pose"])
     states = sample_vehicle(traffic.calibration, pose_t, ground)
-    true_local, true_speed = reference_from_footprint_centre(states.center_poses, profile), states.speed
+    true_local, true_speed = reference_from_footprint_centre(states.centre_poses, calib_vehicle), states.speed
     reported, reported_speed = _reported_poses(true_local, true_speed, pose_t, config.pose, rng["pose"])
     true_stamps = start_ns + np.round(pose_t * 1e9).astype(np.int64)
     vehicle_stamps = true_stamps + config.pose.clock_offset_ns
@@ -551,7 +551,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
             traffic.calibration,
             traffic.end_s,
             ground,
-            profile,
+            calib_vehicle,
             origin,
             geo,
             config,
@@ -560,7 +560,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         )
     else:
         v2x = _v2x_messages(
-            poses, reported_speed, geo, config.station_id, profile, config.pose.position_sigma_m
+            poses, reported_speed, geo, config.station_id, calib_vehicle, config.pose.position_sigma_m
         )
 
     # --- cameras
@@ -588,7 +588,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
             first = int(np.searchsorted(segment, n, side="left"))
             last = int(np.searchsorted(segment, n, side="right"))
             instances, seg_calib = _instances(
-                vehicles, times[first:last], ground, pose, lens, profile, traffic.traversal_windows
+                vehicles, times[first:last], ground, pose, lens, calib_vehicle, traffic.traversal_windows
             )
             parts.append(
                 render_frames(
@@ -653,7 +653,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
             latency_ns,
             rendered,
             calib,
-            profile,
+            calib_vehicle,
             lens,
             v2x_mode,
             calib_shape,
@@ -664,7 +664,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         origin=origin,
         rsu_id=config.rsu_id,
         station_id=config.station_id,
-        vehicle=profile,
+        vehicle=calib_vehicle,
         cameras=cameras,
         detections=detections,
         poses=poses,
@@ -707,7 +707,7 @@ def _ground_truth(
     latency_ns: int,
     rendered: RenderedFrames,
     calib: _CalibrationTrack | None,
-    profile: VehicleProfile,
+    calib_vehicle: VehicleProfile,
     lens: Lens,
     v2x_mode: str,
     calib_shape: BodyShape,
@@ -719,11 +719,11 @@ def _ground_truth(
     traversal = np.full(len(stamps), -1, dtype=np.int64)
     footprints = np.full((len(stamps), 4, 3), np.nan)
     cuboid_boxes = np.full((len(stamps), 4), np.nan)
-    imu = np.asarray(profile.imu_offset, dtype=np.float64)
+    imu = np.asarray(calib_vehicle.imu_offset, dtype=np.float64)
     if calib is not None:
         traversal[calib.frames] = calib.traversal
-        footprints[calib.frames] = place_points(calib.poses, footprint_points(profile), imu)
-        corners = place_points(calib.poses, cuboid_points(profile), imu)
+        footprints[calib.frames] = place_points(calib.poses, footprint_points(calib_vehicle), imu)
+        corners = place_points(calib.poses, cuboid_points(calib_vehicle), imu)
         segment = _segment_of(times[calib.frames], camera)
         for n, pose in enumerate(_camera_poses(camera)):
             rows = np.flatnonzero(segment == n)

@@ -135,7 +135,7 @@ class VehicleStates:
     (local frame, the body resting on the ground), speed (N,) m/s, and the traversal index (N,), -1 when
     the vehicle is not on a traversal."""
 
-    center_poses: FloatArray
+    centre_poses: FloatArray
     speed: FloatArray
     traversal: IntArray
 
@@ -145,7 +145,7 @@ def sample_vehicle(vehicle: SimVehicle, t: FloatArray, ground: GroundSurface) ->
     starts = np.array([leg.motion.k0 * DT_S for leg in vehicle.legs[1:]])
     leg_index = np.searchsorted(starts, t, side="right")
     xy = np.empty((len(t), 2))
-    heading = np.empty(len(t))
+    yaw = np.empty(len(t))
     speed = np.empty(len(t))
     traversal = np.full(len(t), -1, dtype=np.int64)
     for i, leg in enumerate(vehicle.legs):
@@ -153,19 +153,19 @@ def sample_vehicle(vehicle: SimVehicle, t: FloatArray, ground: GroundSurface) ->
         if len(rows) == 0:
             continue
         s, v = leg.motion.state_at(t[rows])
-        xy[rows], heading[rows] = leg.path.at(s)
+        xy[rows], yaw[rows] = leg.path.at(s)
         speed[rows] = v
         if leg.traversal is not None:
             traversal[rows] = leg.traversal
-    return VehicleStates(surface_poses(xy, heading, vehicle.length, vehicle.width, ground), speed, traversal)
+    return VehicleStates(surface_poses(xy, yaw, vehicle.length, vehicle.width, ground), speed, traversal)
 
 
 def surface_poses(
-    xy: FloatArray, heading: FloatArray, length: float, width: float, ground: GroundSurface
+    xy: FloatArray, yaw: FloatArray, length: float, width: float, ground: GroundSurface
 ) -> FloatArray:
     """Footprint-centre poses (N, 6) of bodies resting on the ground: z from the four wheel contacts,
     pitch from the axles' height difference (positive = nose down, R = Rz Ry Rx), roll from the sides'."""
-    forward = np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    forward = np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
     left = np.stack([-forward[:, 1], forward[:, 0]], axis=1)
     half_base = 0.3 * length  # axles at +-30 % of the length: a typical wheelbase of 60 %
     half_track = 0.5 * width
@@ -176,8 +176,8 @@ def surface_poses(
     z = 0.25 * (z_front + z_rear + z_left + z_right)
     pitch = -np.arctan2(z_front - z_rear, 2.0 * half_base)
     roll = np.arctan2(z_left - z_right, 2.0 * half_track)
-    yaw = np.angle(np.exp(1j * heading))
-    return np.column_stack([xy, z, yaw, pitch, roll])
+    wrapped = np.angle(np.exp(1j * yaw))
+    return np.column_stack([xy, z, wrapped, pitch, roll])
 
 
 @dataclass(frozen=True, slots=True)

@@ -56,7 +56,7 @@ CARRIAGEWAY, FOOTWAY, VERGE = 0, 1, 2
 class RoadSurface:
     """The roads' part of the ground (added to the terrain), from the arms' centre lines.
 
-    Every arm's centre line runs from the junction centre along `heading`, then (`bend_start` on) a
+    Every arm's centre line runs from the junction centre along `yaw`, then (`bend_start` on) a
     circular arc of `bend_radius` turning `bend_angle` rad to the side `bend_sign` (+1 left), then straight
     on (extrapolated beyond the arm's end, as Path.at does). A point's station s (m along the arm) and
     offset d (m, left of the outward direction) on each arm give that arm's height: its vertical curves
@@ -65,7 +65,7 @@ class RoadSurface:
     strips, its concave corners rounded by the kerb returns). Arrays are (A,) per arm; curves (C, 4) rows
     of arm index, start (m), length (m), grade change."""
 
-    heading: FloatArray
+    yaw: FloatArray
     bend_start: FloatArray
     bend_sign: FloatArray
     bend_radius: FloatArray
@@ -84,7 +84,7 @@ class RoadSurface:
     def arm_coordinates(self, xy: FloatArray) -> tuple[FloatArray, FloatArray]:
         """(N, 2) local x, y -> station s and left offset d (A, N) in metres, on every arm's centre line."""
         x, y = xy[:, 0][None, :], xy[:, 1][None, :]
-        cos_h, sin_h = np.cos(self.heading)[:, None], np.sin(self.heading)[:, None]
+        cos_h, sin_h = np.cos(self.yaw)[:, None], np.sin(self.yaw)[:, None]
         sign = self.bend_sign[:, None]
         u = cos_h * x + sin_h * y
         v = sign * (cos_h * y - sin_h * x)  # mirrored for right bends: every bend turns left below
@@ -175,9 +175,9 @@ class RoadSurface:
             if not math.isfinite(curve.grade_change):
                 raise SimulationError(where, f"grade_change = {curve.grade_change} is not finite")
             curves.append([arm_index[curve.arm], curve.start_m, curve.length_m, curve.grade_change])
-        heading, bend_start, bend_sign, bend_radius, bend_angle = [], [], [], [], []
+        yaw, bend_start, bend_sign, bend_radius, bend_angle = [], [], [], [], []
         for arm in road.arms:
-            heading.append(math.radians(arm.angle_deg))
+            yaw.append(math.radians(arm.angle_deg))
             # The same bend as _arm_centreline draws: its arc clipped to the arm's length.
             is_bent = arm.bend_deg != 0.0 and arm.bend_start_m < road.arm_length_m
             arc_m = min(
@@ -192,7 +192,7 @@ class RoadSurface:
         if len(road.arms) >= 3:
             # Kerb returns meet the arms' edges (w + R) / tan(phi / 2) from the centre, phi the angle
             # between neighbouring arms: the junction area reaches that far along the sharpest corner.
-            angles = np.sort(np.mod(np.array(heading), 2.0 * math.pi))
+            angles = np.sort(np.mod(np.array(yaw), 2.0 * math.pi))
             gaps = np.diff(np.append(angles, angles[0] + 2.0 * math.pi))
             sharpest = float(gaps.min())
             junction_flat_m = (half_width + spec.kerb_return_radius_m) / math.tan(0.5 * sharpest)
@@ -207,7 +207,7 @@ class RoadSurface:
             for a in road.arms
         ]
         return RoadSurface(
-            heading=np.array(heading),
+            yaw=np.array(yaw),
             bend_start=np.array(bend_start),
             bend_sign=np.array(bend_sign),
             bend_radius=np.array(bend_radius),
@@ -284,88 +284,88 @@ def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def _left_normal(heading: FloatArray) -> FloatArray:
-    return np.stack([-np.sin(heading), np.cos(heading)], axis=-1)
+def _left_normal(yaw: FloatArray) -> FloatArray:
+    return np.stack([-np.sin(yaw), np.cos(yaw)], axis=-1)
 
 
 @dataclass(frozen=True, eq=False)
 class Path:
-    """A drivable centre line resampled every PATH_STEP_M: arc length s (M,), xy (M, 2), heading (M,) in
+    """A drivable centre line resampled every PATH_STEP_M: arc length s (M,), xy (M, 2), yaw (M,) in
     radians (unwrapped, grid east = 0, counter-clockwise). Positions beyond either end extrapolate along
-    the end heading, so vehicles may enter before or leave after the sampled part without a jump."""
+    the end yaw, so vehicles may enter before or leave after the sampled part without a jump."""
 
     s: FloatArray
     xy: FloatArray
-    heading: FloatArray
+    yaw: FloatArray
 
     @staticmethod
-    def from_samples(xy: FloatArray, heading: FloatArray) -> Path:
-        """Resample an ordered polyline with tangent headings to uniform arc-length spacing."""
+    def from_samples(xy: FloatArray, yaw: FloatArray) -> Path:
+        """Resample an ordered polyline with tangent yaws to uniform arc-length spacing."""
         step = np.hypot(*np.diff(xy, axis=0).T)
         keep = np.concatenate([[True], step > 1e-9])
-        xy, heading = xy[keep], np.unwrap(heading[keep])
+        xy, yaw = xy[keep], np.unwrap(yaw[keep])
         s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
         n = max(2, math.ceil(s[-1] / PATH_STEP_M) + 1)
         s_new = np.linspace(0.0, s[-1], n)
         xy_new = np.stack([np.interp(s_new, s, xy[:, 0]), np.interp(s_new, s, xy[:, 1])], axis=1)
-        return Path(s_new, xy_new, np.interp(s_new, s, heading))
+        return Path(s_new, xy_new, np.interp(s_new, s, yaw))
 
     @staticmethod
     def join(parts: list[Path]) -> Path:
-        """Concatenate paths whose ends meet (within a few cm); headings are made continuous."""
+        """Concatenate paths whose ends meet (within a few cm); yaws are made continuous."""
         xy = [parts[0].xy]
-        heading = [parts[0].heading]
+        yaw = [parts[0].yaw]
         for part in parts[1:]:
-            turn = heading[-1][-1] - part.heading[0]
+            turn = yaw[-1][-1] - part.yaw[0]
             offset = 2.0 * math.pi * round(turn / (2.0 * math.pi))
             xy.append(part.xy[1:])
-            heading.append(part.heading[1:] + offset)
-        return Path.from_samples(np.concatenate(xy), np.concatenate(heading))
+            yaw.append(part.yaw[1:] + offset)
+        return Path.from_samples(np.concatenate(xy), np.concatenate(yaw))
 
     @property
     def length(self) -> float:
         return float(self.s[-1])
 
     def at(self, s_query: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Position (N, 2) and heading (N,) at arc lengths (N,); linear extrapolation beyond the ends."""
+        """Position (N, 2) and yaw (N,) at arc lengths (N,); linear extrapolation beyond the ends."""
         s_clamped = np.clip(s_query, 0.0, self.length)
         xy = np.stack(
             [np.interp(s_clamped, self.s, self.xy[:, 0]), np.interp(s_clamped, self.s, self.xy[:, 1])], axis=1
         )
-        heading = np.interp(s_clamped, self.s, self.heading)
+        yaw = np.interp(s_clamped, self.s, self.yaw)
         beyond = s_query - s_clamped
         if np.any(beyond != 0.0):
-            xy = xy + beyond[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
-        return xy, heading
+            xy = xy + beyond[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+        return xy, yaw
 
     def offset(self, lateral_m: float) -> Path:
         """Parallel path `lateral_m` to the left (negative: right) of this one."""
-        return Path.from_samples(self.xy + lateral_m * _left_normal(self.heading), self.heading)
+        return Path.from_samples(self.xy + lateral_m * _left_normal(self.yaw), self.yaw)
 
     def reversed(self) -> Path:
-        return Path.from_samples(self.xy[::-1].copy(), self.heading[::-1] + math.pi)
+        return Path.from_samples(self.xy[::-1].copy(), self.yaw[::-1] + math.pi)
 
     def slice(self, s_from: float, s_to: float) -> Path:
         """The part between two arc lengths (clamped to the path)."""
         inner = (self.s > s_from) & (self.s < s_to)
         ends = np.array([max(s_from, 0.0), min(s_to, self.length)])
-        xy_ends, heading_ends = self.at(ends)
+        xy_ends, yaw_ends = self.at(ends)
         xy = np.concatenate([xy_ends[:1], self.xy[inner], xy_ends[1:]])
-        heading = np.concatenate([heading_ends[:1], self.heading[inner], heading_ends[1:]])
-        return Path.from_samples(xy, heading)
+        yaw = np.concatenate([yaw_ends[:1], self.yaw[inner], yaw_ends[1:]])
+        return Path.from_samples(xy, yaw)
 
     def end_pose(self) -> tuple[FloatArray, float]:
-        return self.xy[-1].copy(), float(self.heading[-1])
+        return self.xy[-1].copy(), float(self.yaw[-1])
 
     def start_pose(self) -> tuple[FloatArray, float]:
-        return self.xy[0].copy(), float(self.heading[0])
+        return self.xy[0].copy(), float(self.yaw[0])
 
     def curve_speed_limit(self) -> FloatArray:
         """Comfortable speed (m/s) at every sample: lateral acceleration <= LATERAL_ACCEL_MPS2 in curves,
         reached by braking at CURVE_DECEL_MPS2 beforehand (a backward pass in v^2, vectorised as a
         running minimum), so a driver model following it slows down before a turn, not in it."""
-        curvature = np.abs(np.gradient(self.heading, self.s)) if len(self.s) > 2 else np.zeros(len(self.s))
-        # Smooth over ~3 m: the sampled heading of offset polylines is slightly noisy at joints.
+        curvature = np.abs(np.gradient(self.yaw, self.s)) if len(self.s) > 2 else np.zeros(len(self.s))
+        # Smooth over ~3 m: the sampled yaw of offset polylines is slightly noisy at joints.
         width = max(1, round(3.0 / PATH_STEP_M))
         curvature = np.convolve(curvature, np.ones(width) / width, mode="same")
         v2_limit = LATERAL_ACCEL_MPS2 / np.maximum(curvature, 1e-6)
@@ -375,23 +375,21 @@ class Path:
         return np.asarray(np.sqrt(np.maximum(v2, 0.0)), dtype=np.float64)
 
 
-def straight_samples(start: FloatArray, heading: float, length: float) -> tuple[FloatArray, FloatArray]:
+def straight_samples(start: FloatArray, yaw: float, length: float) -> tuple[FloatArray, FloatArray]:
     n = max(2, math.ceil(length / PATH_STEP_M) + 1)
     d = np.linspace(0.0, length, n)
-    xy = start + d[:, None] * np.array([math.cos(heading), math.sin(heading)])
-    return xy, np.full(n, heading)
+    xy = start + d[:, None] * np.array([math.cos(yaw), math.sin(yaw)])
+    return xy, np.full(n, yaw)
 
 
-def arc_samples(
-    start: FloatArray, heading: float, radius: float, turn: float
-) -> tuple[FloatArray, FloatArray]:
-    """Circular arc from `start` (tangent `heading`) turning `turn` rad (positive = left) on `radius` m."""
+def arc_samples(start: FloatArray, yaw: float, radius: float, turn: float) -> tuple[FloatArray, FloatArray]:
+    """Circular arc from `start` (tangent `yaw`) turning `turn` rad (positive = left) on `radius` m."""
     sign = 1.0 if turn >= 0 else -1.0
-    centre = start + sign * radius * _left_normal(np.array(heading))
+    centre = start + sign * radius * _left_normal(np.array(yaw))
     n = max(2, math.ceil(abs(turn) * radius / PATH_STEP_M) + 1)
-    headings = heading + np.linspace(0.0, turn, n)
-    xy = centre - sign * radius * _left_normal(headings)
-    return xy, headings
+    yaws = yaw + np.linspace(0.0, turn, n)
+    xy = centre - sign * radius * _left_normal(yaws)
+    return xy, yaws
 
 
 def bezier_samples(p0: FloatArray, h0: float, p1: FloatArray, h1: float) -> tuple[FloatArray, FloatArray]:
@@ -497,20 +495,20 @@ class RoadNetwork:
 def _arm_centreline(
     angle_deg: float, length_m: float, bend_start_m: float, bend_deg: float, bend_radius_m: float
 ) -> Path:
-    heading = math.radians(angle_deg)
+    yaw = math.radians(angle_deg)
     origin = np.zeros(2)
     if bend_deg == 0.0 or bend_start_m >= length_m:
-        return Path.from_samples(*straight_samples(origin, heading, length_m))
+        return Path.from_samples(*straight_samples(origin, yaw, length_m))
     turn = math.radians(bend_deg)
     arc_length = min(abs(turn) * bend_radius_m, length_m - bend_start_m)
     turn = math.copysign(arc_length / bend_radius_m, turn)
-    pieces = [Path.from_samples(*straight_samples(origin, heading, bend_start_m))] if bend_start_m > 0 else []
-    start = np.array([math.cos(heading), math.sin(heading)]) * bend_start_m
-    pieces.append(Path.from_samples(*arc_samples(start, heading, bend_radius_m, turn)))
+    pieces = [Path.from_samples(*straight_samples(origin, yaw, bend_start_m))] if bend_start_m > 0 else []
+    start = np.array([math.cos(yaw), math.sin(yaw)]) * bend_start_m
+    pieces.append(Path.from_samples(*arc_samples(start, yaw, bend_radius_m, turn)))
     rest = length_m - bend_start_m - arc_length
     if rest > 1e-6:
-        end, end_heading = pieces[-1].end_pose()
-        pieces.append(Path.from_samples(*straight_samples(end, end_heading, rest)))
+        end, end_yaw = pieces[-1].end_pose()
+        pieces.append(Path.from_samples(*straight_samples(end, end_yaw, rest)))
     return Path.join(pieces)
 
 

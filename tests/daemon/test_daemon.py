@@ -23,7 +23,7 @@ from daemon.clock import ScaledClock
 from daemon.demo import BusMessage, demo_config, publish_messages, simulation_messages
 from daemon.main import Daemon
 from daemon.recording import list_recordings, read_window
-from pipeline.camera import camera_center
+from pipeline.camera import camera_centre
 from schemas.common import decode_json
 from schemas.config import DaemonConfig
 from schemas.results import CalibrationResult, CalibrationStatus, Health
@@ -126,7 +126,7 @@ def test_two_cameras_calibrate_over_the_bus_and_survive_a_restart(
             assert result.verdict.is_accepted
             assert result.quality is not None and result.quality.traversals >= 2
             assert result.provenance.station_id == sim.station_id
-            true_centre = camera_center(camera.R_cam_from_local, camera.t_cam_from_local) + origin
+            true_centre = camera_centre(camera.R_cam_from_local, camera.t_cam_from_local) + origin
             assert result.camera_position is not None
             # the pipeline benchmark's sil-west worst case is 0.19 m; 0.5 m is the demo's acceptance bound
             assert np.linalg.norm(np.array(result.camera_position.utm) - true_centre) < 0.5

@@ -39,12 +39,11 @@ from daemon.jobs import (
     JobTimeout,
     _time_limit,
     new_job_id,
-    pipeline_params,
     run_job,
 )
 from daemon.pool import JobRunner
 from daemon.recording import write_simulation_mcap
-from pipeline.calibrate import SOFTWARE_VERSION, PipelineParams
+from pipeline.calibrate import SOFTWARE_VERSION
 from schemas.config import GatesConfig
 from schemas.results import CalibrationResult
 from sim.simulate import SimulationResult, simulate
@@ -583,14 +582,6 @@ def test_a_runner_made_on_a_passing_thread_keeps_its_workers(scene: Scene) -> No
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-
-
-def test_pipeline_params_carry_the_configured_gates() -> None:
-    assert pipeline_params(GatesConfig()) == PipelineParams()
-    gates = GatesConfig(min_traversals=3, max_position_std_m=0.2, max_box_error_pct=10.0)
-    params = pipeline_params(gates)
-    assert (params.gates.min_traversals, params.gates.max_position_std_m) == (3, 0.2)
-    assert params.gates.max_box_error_pct == 10.0
 
 
 def test_job_ids_name_the_camera_and_sort_by_time() -> None:

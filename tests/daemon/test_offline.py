@@ -12,7 +12,6 @@ import pytest
 from daemon.offline import (
     DEFAULT_YAML_CRS,
     TerminalProgress,
-    collapse_counted_notes,
     format_summary,
     load_offline_inputs,
     write_result,
@@ -210,23 +209,6 @@ def test_summary_of_a_refusal_lists_every_reason_and_no_pose() -> None:
     assert text.splitlines()[0] == "verdict      refused (camera cam, rsu offline)"
     assert "  reason     no track overlaps" in text and "  reason     second reason" in text
     assert "position" not in text and text.endswith("wrote        out.json")
-
-
-def test_counted_notes_that_differ_only_in_numbers_collapse_into_ranges() -> None:
-    notes = (
-        "group 0: tracks [1, 2]",
-        "1 x camera 42.2 m from the driven path > 40.0 m",
-        "3 x degenerate",
-        "1 x camera 313.0 m from the driven path > 40.0 m",
-        "1 x camera 57.25 m from the driven path > 40.0 m",
-        "1 x camera {odd} 1 m",
-    )
-    assert collapse_counted_notes(notes) == (
-        "group 0: tracks [1, 2]",
-        "3 x camera 42.20..313.00 m from the driven path > 40.0 m",
-        "3 x degenerate",
-        "1 x camera (odd) 1 m",
-    )
 
 
 class _Terminal(io.StringIO):

@@ -2,7 +2,7 @@
 
 Models are the cell detectors of onnx_models.py (built here, nothing downloaded): a cell's class scores are
 its mean red, green, blue, so a solid colour rectangle aligned with the network's 32 px cells is detected as
-exactly those cells. The images are 640 x 400 px into a 320 x 256 network: scale 0.5, and YOLOv5/v8 center
+exactly those cells. The images are 640 x 400 px into a 320 x 256 network: scale 0.5, and YOLOv5/v8 centre
 the image (28 px grey above and below) while YOLOX puts it at the top left.
 """
 
@@ -49,9 +49,9 @@ def _image(rectangles: list[tuple[int, int, int, int, tuple[int, int, int]]]) ->
     return image
 
 
-# Network cells (32 px) in image pixels: x = 64 * column; y = 2 * (32 * row - 28) centered, 64 * row top-left.
-CENTERED_SCENE = [(128, 72, 256, 136, RED), (448, 200, 512, 264, BLUE)]  # cells (2..3, 2) and (7, 4)
-CENTERED_BOXES = [
+# Network cells (32 px) in image pixels: x = 64 * column; y = 2 * (32 * row - 28) centred, 64 * row top-left.
+CENTRED_SCENE = [(128, 72, 256, 136, RED), (448, 200, 512, 264, BLUE)]  # cells (2..3, 2) and (7, 4)
+CENTRED_BOXES = [
     ((128.0, 72.0, 192.0, 136.0), 0),
     ((192.0, 72.0, 256.0, 136.0), 0),
     ((448.0, 200.0, 512.0, 264.0), 2),
@@ -63,8 +63,8 @@ TOP_LEFT_BOXES = [
     ((448.0, 256.0, 512.0, 320.0), 2),
 ]
 SCENES = {
-    "yolov5": (CENTERED_SCENE, CENTERED_BOXES),
-    "yolov8": (CENTERED_SCENE, CENTERED_BOXES),
+    "yolov5": (CENTRED_SCENE, CENTRED_BOXES),
+    "yolov8": (CENTRED_SCENE, CENTRED_BOXES),
     "yolox": (TOP_LEFT_SCENE, TOP_LEFT_BOXES),
 }
 
@@ -92,10 +92,10 @@ def test_each_layout_finds_the_coloured_cells_in_image_pixels(tmp_path: Path, la
 @pytest.mark.parametrize("layout", ["yolov5", "yolov8"])
 def test_nms_removes_the_larger_duplicates_and_keeps_neighbours(tmp_path: Path, layout: str) -> None:
     model = write_model(tmp_path / "m.onnx", layout)
-    kept = OnnxDetector(_detector_config(model, layout), None, "d").detect(_image(CENTERED_SCENE))
+    kept = OnnxDetector(_detector_config(model, layout), None, "d").detect(_image(CENTRED_SCENE))
     # With NMS off (IoU threshold 1.0) each cell's 1.25x box (score 0.9) comes back too.
     loose_detector = OnnxDetector(_detector_config(model, layout, nms_iou=1.0), None, "d")
-    loose = loose_detector.detect(_image(CENTERED_SCENE))
+    loose = loose_detector.detect(_image(CENTRED_SCENE))
     assert len(kept.boxes) == 3 and len(loose.boxes) == 6
     assert sorted(loose.scores.round(6).tolist()) == [0.9] * 3 + [1.0] * 3
     # The duplicates are 1.25x the cell about the same centre: 80 x 80 image px.
@@ -106,7 +106,7 @@ def test_nms_removes_the_larger_duplicates_and_keeps_neighbours(tmp_path: Path, 
 def test_labels_name_the_classes_and_classes_filters_them(tmp_path: Path) -> None:
     model = write_model(tmp_path / "m.onnx", "yolov8")
     detector = OnnxDetector(_detector_config(model, "yolov8", classes=["car"]), COCO_LIKE, "d")
-    payload = json.loads(detector.frame_payload("cam", T0, detector.detect(_image(CENTERED_SCENE))))
+    payload = json.loads(detector.frame_payload("cam", T0, detector.detect(_image(CENTRED_SCENE))))
     assert payload["camera_id"] == "cam" and payload["stamp_ns"] == T0
     assert sorted((b["x1"], b["y1"], b["x2"], b["y2"], b["cls"]) for b in payload["boxes"]) == [
         (128.0, 72.0, 192.0, 136.0, "car"),
@@ -114,20 +114,20 @@ def test_labels_name_the_classes_and_classes_filters_them(tmp_path: Path) -> Non
     ]
     # Without labels the model's ids are sent; an id filter works without labels.
     plain = OnnxDetector(_detector_config(model, "yolov8", classes=[2]), None, "d")
-    payload = json.loads(plain.frame_payload("cam", T0, plain.detect(_image(CENTERED_SCENE))))
+    payload = json.loads(plain.frame_payload("cam", T0, plain.detect(_image(CENTRED_SCENE))))
     assert [(b["x1"], b["cls"]) for b in payload["boxes"]] == [(448.0, 2)]
 
 
 def test_letterbox_places_and_scales_the_image() -> None:
     image = np.full((400, 640, 3), 7, dtype=np.uint8)
-    canvas, placement = letterbox(image, 320, 256, centered=True)
+    canvas, placement = letterbox(image, 320, 256, centred=True)
     assert (placement.scale_x, placement.scale_y, placement.pad_x, placement.pad_y) == (0.5, 0.5, 0, 28)
     assert (canvas[:28] == 114).all() and (canvas[28:228] == 7).all() and (canvas[228:] == 114).all()
-    canvas, placement = letterbox(image, 320, 256, centered=False)
+    canvas, placement = letterbox(image, 320, 256, centred=False)
     assert (placement.pad_x, placement.pad_y) == (0, 0)
     assert (canvas[:200] == 7).all() and (canvas[200:] == 114).all()
     # Portrait: pillarboxed.
-    canvas, placement = letterbox(np.zeros((640, 400, 3), np.uint8), 256, 320, centered=True)
+    canvas, placement = letterbox(np.zeros((640, 400, 3), np.uint8), 256, 320, centred=True)
     assert (placement.scale_x, placement.pad_x, placement.pad_y) == (0.5, 28, 0)
 
 
@@ -177,7 +177,7 @@ def test_worker_drops_the_oldest_images_under_load_and_counts_bad_ones(tmp_path:
     key = "rsu/r1/camera/cam/detections"
     detector = OnnxDetector(config, None, "d")
     worker = DetectorWorker("cam", key, detector, gate, counters, SystemClock(), 10.0, image_size=(640, 400))
-    image = _image(CENTERED_SCENE)
+    image = _image(CENTRED_SCENE)
     worker.start()
     try:
         worker.offer(encode_compressed_image(image, T0, "cam"), 1)
@@ -256,7 +256,7 @@ def test_daemon_detects_images_from_the_bus_and_records_the_frames(tmp_path: Pat
         )
         wait_until(lambda: _matched(publisher))
         for stamp_ns in stamps:
-            publisher.put(encode_compressed_image(_image(CENTERED_SCENE), stamp_ns, "cam"))
+            publisher.put(encode_compressed_image(_image(CENTRED_SCENE), stamp_ns, "cam"))
             # One at a time: the test is about what arrives, not about dropping (tested above).
             wait_until(lambda s=stamp_ns: daemon.counters.get("detections.accepted") == stamps.index(s) + 1)
         client.put(image_key("r1", "cam"), b'{"timestamp": 5}')  # bad: counted, named
@@ -305,5 +305,5 @@ def test_daemon_refuses_a_missing_model_before_starting(tmp_path: Path) -> None:
 def test_the_benchmark_backbone_leaves_the_detections_unchanged(tmp_path: Path) -> None:
     # bench.daemon's detector part times this model; its detections must still be the cell detector's.
     model = write_model(tmp_path / "m.onnx", "yolov8", backbone=True)
-    found = OnnxDetector(_detector_config(model, "yolov8"), None, "d").detect(_image(CENTERED_SCENE))
-    assert _sorted(found.boxes, found.class_ids) == sorted(CENTERED_BOXES)
+    found = OnnxDetector(_detector_config(model, "yolov8"), None, "d").detect(_image(CENTRED_SCENE))
+    assert _sorted(found.boxes, found.class_ids) == sorted(CENTRED_BOXES)

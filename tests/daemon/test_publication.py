@@ -54,7 +54,7 @@ from daemon.keys import (
 )
 from daemon.main import Daemon, DaemonEvent
 from daemon.traversals import JobWindow
-from pipeline.camera import camera_center, quaternion_wxyz_from_rotation
+from pipeline.camera import camera_centre, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
 from pipeline.metrics import result_from_ground_truth
 from schemas.common import decode_json
@@ -697,7 +697,7 @@ def test_manual_trigger_over_the_bus(
         # 0.5 m is the demo's acceptance bound).
         truth = next(c for c in sim.cameras if c.camera_id == camera_id)
         origin = np.array([sim.origin.x, sim.origin.y, sim.origin.z])
-        true_centre = camera_center(truth.R_cam_from_local, truth.t_cam_from_local) + origin
+        true_centre = camera_centre(truth.R_cam_from_local, truth.t_cam_from_local) + origin
         assert result.camera_position is not None
         assert np.linalg.norm(np.asarray(result.camera_position.utm) - true_centre) < 0.5
         # The trigger concerned one camera only.

@@ -30,6 +30,8 @@ from schemas.results import CalibrationResult, Verdict
 from sim.files import write_simulation_files
 from sim.simulate import SimulationResult, simulate
 
+CREATED_AT_NS = 1_700_000_000_000_000_000  # the result's creation time: the caller's clock
+
 FIGURES = ("map.png", "distance.png", "residuals.png", "hypotheses.png", "uncertainty.png")
 
 
@@ -250,7 +252,7 @@ def outcome(scene: Scene) -> CalibrationOutcome:
         crs=sim.origin.crs,
         time_offset_ns=sim.ground_truth[camera.camera_id].clock_offset_ns,
     )
-    return calibrate(inputs, PipelineParams(), np.random.default_rng(0))
+    return calibrate(inputs, PipelineParams(), np.random.default_rng(0), created_at_ns=CREATED_AT_NS)
 
 
 def test_overlays_are_drawn_on_the_recorded_image_when_there_is_one(

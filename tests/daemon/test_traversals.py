@@ -25,7 +25,7 @@ from daemon.traversals import (
 )
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     camera_rotation_from_view,
     project_points,
 )
@@ -63,7 +63,7 @@ class Scene:
 
     def centre_utm(self, camera_id: str) -> np.ndarray:
         camera = self.camera(camera_id)
-        centre = camera_center(camera.R_cam_from_local, camera.t_cam_from_local) + self.origin
+        centre = camera_centre(camera.R_cam_from_local, camera.t_cam_from_local) + self.origin
         return np.asarray(centre, dtype=np.float64)
 
     def visible_runs(self, camera_id: str) -> dict[int, tuple[int, int]]:

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation as SciRotation
 from pipeline.arrays import FloatArray
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     camera_rotation_from_view,
     distort_normalized,
     project_points,
@@ -291,9 +291,9 @@ def test_rvec_of_tiny_rotations_is_not_rounded_to_zero(angle: float) -> None:
 @given(
     R=rotations(), t=st.tuples(st.floats(-100.0, 100.0), st.floats(-100.0, 100.0), st.floats(-100.0, 100.0))
 )
-def test_camera_center_maps_to_the_camera_origin(R: FloatArray, t: tuple[float, float, float]) -> None:
-    center = camera_center(R, np.array(t))
-    np.testing.assert_allclose(R @ center + np.array(t), np.zeros(3), atol=1e-10)
+def test_camera_centre_maps_to_the_camera_origin(R: FloatArray, t: tuple[float, float, float]) -> None:
+    centre = camera_centre(R, np.array(t))
+    np.testing.assert_allclose(R @ centre + np.array(t), np.zeros(3), atol=1e-10)
 
 
 # --- camera_rotation_from_view ---------------------------------------------------------------------------
@@ -349,15 +349,15 @@ def test_ground_point_straight_ahead_projects_to_the_principal_point(
     )
     camera = CameraModel.from_intrinsics(intrinsics)
     R = camera_rotation_from_view(yaw, pitch_down)
-    center = np.array([xy[0], xy[1], height])
+    centre = np.array([xy[0], xy[1], height])
     ahead_m = height / math.tan(pitch_down)
-    ground_point = center + np.array([ahead_m * math.cos(yaw), ahead_m * math.sin(yaw), -height])
-    pixels, depth = project_points(ground_point[None, :], R, -R @ center, camera)
+    ground_point = centre + np.array([ahead_m * math.cos(yaw), ahead_m * math.sin(yaw), -height])
+    pixels, depth = project_points(ground_point[None, :], R, -R @ centre, camera)
     np.testing.assert_allclose(pixels[0], [955.0, 547.0], atol=1e-6)
     assert depth[0] == pytest.approx(math.hypot(ahead_m, height), rel=1e-9)
     # A point to the camera's right on the ground appears right of the centre (u grows).
     right_world = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
-    pixels_right, _ = project_points((ground_point + right_world)[None, :], R, -R @ center, camera)
+    pixels_right, _ = project_points((ground_point + right_world)[None, :], R, -R @ centre, camera)
     assert pixels_right[0, 0] > 955.0
 
 

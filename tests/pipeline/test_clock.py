@@ -24,9 +24,9 @@ VEHICLE = VehicleProfile(length=4.6, width=1.9, height=1.5, imu_offset=(1.3, 0.9
 CAMERA = CameraModel.from_intrinsics(
     CameraIntrinsics(width=1920, height=1080, fx=1000.0, fy=1000.0, cx=960.0, cy=540.0)
 )
-CAMERA_CENTER = np.array([4.0, -14.0, 8.0])
+CAMERA_CENTRE = np.array([4.0, -14.0, 8.0])
 R_TRUE = camera_rotation_from_view(math.radians(95.0), math.radians(18.0))
-T_TRUE = -R_TRUE @ CAMERA_CENTER
+T_TRUE = -R_TRUE @ CAMERA_CENTRE
 GROUND = GroundPlaneFit(normal=np.array([0.0, 0.0, 1.0]), offset=0.0)
 START_NS = 1_700_000_000_000_000_000
 FRAME_NS = 50_000_000  # 20 fps
@@ -38,8 +38,8 @@ def curve() -> np.ndarray:
     theta = np.linspace(-math.pi / 2, math.radians(20.0), 200)[1:]
     arc = np.column_stack([40.0 * np.cos(theta), 40.0 + 40.0 * np.sin(theta)])
     approach = np.column_stack([np.linspace(-150.0, 0.0, 60), np.zeros(60)])
-    heading = math.radians(110.0)
-    leave = arc[-1] + np.linspace(1.0, 150.0, 60)[:, None] * np.array([math.cos(heading), math.sin(heading)])
+    yaw = math.radians(110.0)
+    leave = arc[-1] + np.linspace(1.0, 150.0, 60)[:, None] * np.array([math.cos(yaw), math.sin(yaw)])
     return np.concatenate([approach, arc, leave])
 
 
@@ -159,5 +159,5 @@ def test_track_velocity_of_one_row_is_zero() -> None:
 def test_shifted_moves_the_camera_back_along_the_velocity() -> None:
     hypothesis = Hypothesis(7, R_TRUE, T_TRUE, np.ones(3, dtype=bool), 0.5)
     moved = shifted(hypothesis, np.array([10.0, -4.0, 0.0]), 0.2)
-    np.testing.assert_allclose(moved.camera_center, CAMERA_CENTER - np.array([2.0, -0.8, 0.0]), atol=1e-12)
+    np.testing.assert_allclose(moved.camera_centre, CAMERA_CENTRE - np.array([2.0, -0.8, 0.0]), atol=1e-12)
     np.testing.assert_array_equal(moved.R_cam_from_local, R_TRUE)

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from pipeline.association import AssociationParams, MatchedTrack, Trajectory, match_tracks
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     camera_rotation_from_view,
     project_points,
     rotation_angle_rad,
@@ -22,12 +22,12 @@ from pipeline.ground import GroundPlaneFit
 from pipeline.hypotheses import HypothesisParams, HypothesisSet, create_hypotheses
 from pipeline.straight_track import StraightTrackParams
 from pipeline.tracking import ImageTrack
-from pipeline.vehicle import body_centers, body_corners
+from pipeline.vehicle import body_centres, body_corners
 from schemas.common import CameraIntrinsics, VehicleProfile
 
 VEHICLE = VehicleProfile(length=4.6, width=1.9, height=1.5, imu_offset=(1.3, 0.95, 0.4))
 GROUND = GroundPlaneFit(normal=np.array([0.0, 0.0, 1.0]), offset=0.0)
-CAMERA_CENTER = np.array([4.0, -14.0, 8.0])
+CAMERA_CENTRE = np.array([4.0, -14.0, 8.0])
 START_NS = 1_700_000_000_000_000_000
 FRAME_NS = 100_000_000  # 10 fps
 
@@ -50,7 +50,7 @@ def true_pose(
     yaw_deg: float = 95.0, pitch_deg: float = 18.0, roll_deg: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     R = camera_rotation_from_view(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
-    return R, -R @ CAMERA_CENTER
+    return R, -R @ CAMERA_CENTRE
 
 
 def curved_poses(count: int = 120) -> np.ndarray:
@@ -73,7 +73,7 @@ def exact_track(
 ) -> MatchedTrack:
     """Boxes of the projected vehicle cuboid's size, centred on the exact projections of the body centres
     (a tight box's centre is a few px off that projection; here the centre correspondences are exact)."""
-    pixels, depth = project_points(body_centers(poses, VEHICLE), R, t, camera)
+    pixels, depth = project_points(body_centres(poses, VEHICLE), R, t, camera)
     assert np.all(depth > 0)
     assert np.all((pixels >= 0) & (pixels <= [camera.width, camera.height]))
     corners, _ = project_points(body_corners(poses, VEHICLE).reshape(-1, 3), R, t, camera)
@@ -110,7 +110,7 @@ def test_epnp_recovers_exact_pose(fx: float, k1: float) -> None:
     assert result.rejected == {}
     (hypothesis,) = result.hypotheses
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-7
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-5)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-5)
     assert hypothesis.inliers.all()
     assert hypothesis.median_reproj_px < 1e-4
     assert hypothesis.rotation_std_deg < 0.5
@@ -141,12 +141,12 @@ def test_exact_pose_round_trips_for_any_view(
     camera = make_camera(900.0, k1)
     R, t = true_pose(yaw_deg, pitch_deg, roll_deg)
     poses = curved_poses()
-    pixels, depth = project_points(body_centers(poses, VEHICLE), R, t, camera)
+    pixels, depth = project_points(body_centres(poses, VEHICLE), R, t, camera)
     visible = (depth > 0) & np.all((pixels > 0) & (pixels < [camera.width, camera.height]), axis=1)
     track = exact_track(poses[visible], camera, R, t)
     (hypothesis,) = solve_one(track, camera).hypotheses
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-6
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-4)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-4)
 
 
 def test_ransac_rejects_twenty_percent_gross_outliers() -> None:
@@ -163,7 +163,7 @@ def test_ransac_rejects_twenty_percent_gross_outliers() -> None:
     corrupted = MatchedTrack(track.track_id, track.stamps, boxes, track.poses)
     (hypothesis,) = solve_one(corrupted, camera).hypotheses
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-7
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-5)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-5)
     expected = np.ones(len(boxes), dtype=bool)
     expected[bad] = False
     np.testing.assert_array_equal(hypothesis.inliers, expected)
@@ -195,7 +195,14 @@ def test_rejects_too_few_correspondences() -> None:
     track = exact_track(curved_poses(6), camera, R, t, track_id=9)
     result = solve_one(track, camera)
     assert result.hypotheses == ()
-    assert result.rejected[9].startswith("too few correspondences: 6 < 8")
+    assert str(result.rejected[9]).startswith("too few correspondences: 6 < 8")
+    reason = result.rejected[9]
+    assert (reason.code, reason.quantity, reason.value, reason.limit) == (
+        "too_few_correspondences",
+        "correspondences",
+        6,
+        8,
+    )
 
 
 def test_rejects_vehicle_parked_in_view() -> None:
@@ -203,7 +210,7 @@ def test_rejects_vehicle_parked_in_view() -> None:
     R, t = true_pose()
     parked = np.repeat(curved_poses()[40:41], 50, axis=0)
     result = solve_one(exact_track(parked, camera, R, t), camera)
-    assert result.rejected[1].startswith("not moving in the image")
+    assert str(result.rejected[1]).startswith("not moving in the image")
 
 
 def test_rejects_box_track_moving_while_the_vehicle_is_parked() -> None:
@@ -214,7 +221,7 @@ def test_rejects_box_track_moving_while_the_vehicle_is_parked() -> None:
     parked = np.repeat(curved_poses()[:1], 50, axis=0)
     parked[:, 1] += 200.0
     result = solve_one(MatchedTrack(1, moving.stamps, moving.boxes, parked), camera)
-    assert result.rejected[1].startswith("vehicle not moving")
+    assert str(result.rejected[1]).startswith("vehicle not moving")
 
 
 def test_rejects_camera_far_from_the_driven_path() -> None:
@@ -223,7 +230,9 @@ def test_rejects_camera_far_from_the_driven_path() -> None:
     track = exact_track(curved_poses(), camera, R, t)
     # The camera stands ~15 m from the turn; with d_thr = 10 m that is too far.
     result = solve_one(track, camera, HypothesisParams(max_camera_distance_m=10.0))
-    assert "from the driven path > 10.0 m" in result.rejected[1]
+    assert "from the driven path > 10.0 m" in str(result.rejected[1])
+    far = result.rejected[1]
+    assert far.code == "far_from_path" and far.limit == 10.0 and far.value is not None and far.value > 10.0
     assert solve_one(track, camera, HypothesisParams(max_camera_distance_m=20.0)).rejected == {}
 
 
@@ -240,7 +249,7 @@ def test_distance_to_path_uses_segments_of_a_sparse_trajectory() -> None:
     far_poses = sparse.poses.copy()
     far_poses[:, 1] += 300.0
     far_away = Trajectory(stamps=sparse.stamps, poses=far_poses)
-    assert "from the driven path" in solve_one(track, camera, trajectory=far_away).rejected[1]
+    assert "from the driven path" in str(solve_one(track, camera, trajectory=far_away).rejected[1])
 
 
 def test_rejects_camera_below_ground() -> None:
@@ -250,7 +259,7 @@ def test_rejects_camera_below_ground() -> None:
     # A ground plane 12 m up puts the (correct) camera 4 m under it.
     above_camera = GroundPlaneFit(normal=np.array([0.0, 0.0, 1.0]), offset=12.0)
     result = solve_one(track, camera, ground=above_camera)
-    assert result.rejected[1].startswith("camera -4.0 m above ground")
+    assert str(result.rejected[1]).startswith("camera -4.0 m above ground")
 
 
 def test_rejects_high_median_reprojection_error() -> None:
@@ -262,7 +271,7 @@ def test_rejects_high_median_reprojection_error() -> None:
     jump = np.array([0.0, 40.0, -40.0])[np.arange(len(track.boxes)) % 3]
     boxes = track.boxes + np.column_stack([jump, np.zeros_like(jump), jump, np.zeros_like(jump)])
     result = solve_one(MatchedTrack(1, track.stamps, boxes, track.poses), camera)
-    assert result.rejected[1].startswith("median reprojection error")
+    assert str(result.rejected[1]).startswith("median reprojection error")
 
 
 def road_poses(heading_deg: float, count: int = 120, length_m: float = 40.0) -> np.ndarray:
@@ -306,7 +315,7 @@ def test_rejects_straight_line_track_seen_side_on() -> None:
     camera = make_camera()
     R, t = true_pose()
     result = solve_one(exact_track(straight_poses(), camera, R, t), camera)
-    reason = result.rejected[1]
+    reason = str(result.rejected[1])
     assert reason.startswith("degenerate: straight-line track")
     assert "side-on" in reason
 
@@ -316,8 +325,8 @@ def test_straight_line_track_without_the_level_prior_is_rejected() -> None:
     R, t = true_pose()
     track = visible_track(road_poses(60.0), camera, R, t)
     result = solve_one(track, camera, HypothesisParams(level_camera_prior=False))
-    assert result.rejected[1].startswith("degenerate: straight-line track")
-    assert "level" not in result.rejected[1]
+    assert str(result.rejected[1]).startswith("degenerate: straight-line track")
+    assert "level" not in str(result.rejected[1])
 
 
 @pytest.mark.parametrize("heading_deg", [30.0, 60.0, 95.0])
@@ -327,7 +336,7 @@ def test_straight_track_along_the_view_is_solved_for_a_level_camera(heading_deg:
     (hypothesis,) = solve_one(visible_track(road_poses(heading_deg), camera, R, t), camera).hypotheses
     assert hypothesis.solver == "level"
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-6
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-4)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-4)
 
 
 def test_level_prior_error_follows_the_camera_roll() -> None:
@@ -374,7 +383,7 @@ def test_straight_track_seen_by_a_portrait_camera_is_solved(
     (hypothesis,) = solve_one(visible_track(road_poses(heading_deg), camera, R, t), camera).hypotheses
     assert hypothesis.solver == solver
     assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < 1e-6
-    np.testing.assert_allclose(hypothesis.camera_center, CAMERA_CENTER, atol=1e-4)
+    np.testing.assert_allclose(hypothesis.camera_centre, CAMERA_CENTRE, atol=1e-4)
 
 
 @settings(max_examples=12, deadline=None)
@@ -400,7 +409,7 @@ def test_tilted_camera_on_a_straight_track_is_close_or_rejected(
     result = solve_one(MatchedTrack(1, track.stamps, noisy, track.poses), camera)
     for hypothesis in result.hypotheses:
         assert rotation_angle_rad(hypothesis.R_cam_from_local, R) < math.radians(2.0)
-        assert np.linalg.norm(hypothesis.camera_center - CAMERA_CENTER) < 1.0
+        assert np.linalg.norm(hypothesis.camera_centre - CAMERA_CENTRE) < 1.0
     assert len(result.hypotheses) + len(result.rejected) == 1
 
 
@@ -428,7 +437,7 @@ def test_upside_down_camera_is_rejected_unless_assumed(heading_deg: float) -> No
     track = visible_track(road_poses(heading_deg), camera, R, t)
     result = solve_one(track, camera)
     assert result.hypotheses == ()
-    assert "not within 15.0 deg of [0.0, 90.0, -90.0] deg" in result.rejected[1]
+    assert "not within 15.0 deg of [0.0, 90.0, -90.0] deg" in str(result.rejected[1])
     mounts = HypothesisParams(straight_track=StraightTrackParams(mount_rolls_deg=(0.0, 90.0, -90.0, 180.0)))
     (hypothesis,) = solve_one(track, camera, mounts).hypotheses
     assert hypothesis.solver == "level+180"
@@ -447,8 +456,8 @@ def test_boxes_of_another_size_are_not_the_calibration_vehicle() -> None:
         MatchedTrack(1, track.stamps, np.hstack([centres - half, centres + half]), track.poses), camera
     )
     assert result.hypotheses == ()
-    assert result.rejected[1].startswith("degenerate: straight-line track")
-    assert "straight-track fit" in result.rejected[1]
+    assert str(result.rejected[1]).startswith("degenerate: straight-line track")
+    assert "straight-track fit" in str(result.rejected[1])
 
 
 def test_nearly_straight_track_is_settled_by_the_box_shape() -> None:
@@ -542,12 +551,12 @@ def test_match_tracks_with_empty_trajectory() -> None:
     assert match_tracks([image_track(1, 0, 5)], empty, AssociationParams()) == []
 
 
-def test_camera_center_property_matches_camera_module() -> None:
+def test_camera_centre_property_matches_camera_module() -> None:
     camera = make_camera()
     R, t = true_pose()
     (hypothesis,) = solve_one(exact_track(curved_poses(), camera, R, t), camera).hypotheses
     np.testing.assert_allclose(
-        hypothesis.camera_center, camera_center(hypothesis.R_cam_from_local, hypothesis.t_cam_from_local)
+        hypothesis.camera_centre, camera_centre(hypothesis.R_cam_from_local, hypothesis.t_cam_from_local)
     )
 
 

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from daemon.cli import main as cli_main
 from pipeline.arrays import FloatArray
-from pipeline.camera import CameraModel, camera_center, camera_rotation_from_view, project_points
+from pipeline.camera import CameraModel, camera_centre, camera_rotation_from_view, project_points
 from pipeline.errors import InputError, ShapeError
 from pipeline.ground import GroundPlaneFit
 from pipeline.metrics import (
@@ -21,7 +21,6 @@ from pipeline.metrics import (
     delta_p,
     evaluate_against_ground_truth,
     format_evaluation,
-    reprojection_rmse,
     result_from_ground_truth,
 )
 from pipeline.vehicle import body_corners, footprint_corners
@@ -38,11 +37,11 @@ VEHICLE = VehicleProfile(length=4.6, width=1.9, height=1.5, imu_offset=(1.2, 0.9
 
 
 def extrinsic(
-    center: tuple[float, float, float], yaw: float, pitch_down: float
+    centre: tuple[float, float, float], yaw: float, pitch_down: float
 ) -> tuple[FloatArray, FloatArray]:
-    """R_cam_from_local, t_cam_from_local of a non-rolled camera at `center` looking along `yaw`."""
+    """R_cam_from_local, t_cam_from_local of a non-rolled camera at `centre` looking along `yaw`."""
     R = camera_rotation_from_view(yaw, pitch_down)
-    return R, -R @ np.asarray(center, dtype=np.float64)
+    return R, -R @ np.asarray(centre, dtype=np.float64)
 
 
 def exact_boxes(poses: FloatArray, R: FloatArray, t: FloatArray, camera: CameraModel) -> FloatArray:
@@ -119,15 +118,6 @@ def test_explicit_ground_plane_measures_in_that_plane() -> None:
     assert delta_p(boxes, footprint, R, t, CAMERA, ground=flat).delta_p_m[0] == pytest.approx(0.25, abs=1e-12)
     # Default: the footprint's own plane z = 0.3 (9.7 m below the camera): the line is x = -0.97.
     assert delta_p(boxes, footprint, R, t, CAMERA).delta_p_m[0] == pytest.approx(0.28, abs=1e-12)
-
-
-def test_reprojection_rmse_hand_value() -> None:
-    R, t = extrinsic((0.0, 0.0, 6.0), 0.0, math.radians(30.0))
-    points = np.array([[10.0, 1.0, 0.0], [20.0, -2.0, 0.5], [15.0, 0.0, 1.0]])
-    pixels, _ = project_points(points, R, t, CAMERA)
-    assert reprojection_rmse(points, pixels + np.array([3.0, 4.0]), R, t, CAMERA) == pytest.approx(5.0)
-    behind = np.array([[-10.0, 0.0, 0.0]])
-    assert reprojection_rmse(behind, np.zeros((1, 2)), R, t, CAMERA) == math.inf
 
 
 # --- ground-truth floor and perturbations ----------------------------------------------------------------
@@ -279,7 +269,7 @@ def test_translation_along_the_ground_shifts_delta_p_by_the_forward_component(
     pose = np.array([[centre_xy[0], centre_xy[1], VEHICLE.imu_offset[2], vehicle_yaw, 0.0, 0.0]])
     boxes = exact_boxes(pose, R, t, CAMERA)
     footprints = footprint_corners(pose, VEHICLE)
-    moved_centre = camera_center(R, t) - back * forward + sideways * right
+    moved_centre = camera_centre(R, t) - back * forward + sideways * right
     t_moved = -R @ moved_centre
     errors = delta_p(boxes, footprints, R, t_moved, CAMERA)
     assume(bool(errors.valid[0]))
@@ -319,7 +309,7 @@ def synthetic_truth(n: int = 60, jitter_px: float = 0.0, seed: int = 7) -> Groun
         R=tuple(tuple(float(v) for v in row) for row in R),
         t_utm=tuple(float(v) for v in t_local - R @ origin),
         t_local=tuple(float(v) for v in t_local),
-        camera_position_utm=tuple(float(v) for v in camera_center(R, t_local) + origin),
+        camera_position_utm=tuple(float(v) for v in camera_centre(R, t_local) + origin),
         intrinsics=INTRINSICS,
         station_id=42,
         traversals=1,
@@ -360,7 +350,7 @@ def test_evaluation_handles_another_origin_and_measures_pose_errors() -> None:
     assert same.position_error_m == pytest.approx(0.0, abs=1e-6)
     assert same.delta_p_max_m is not None and same.delta_p_max_m < 1e-6
     # Camera centre 0.3 m east and 0.4 m up of the truth: position error 0.5 m, height +0.4 m.
-    centre = camera_center(R, np.asarray(gt.t)) + np.array([0.3, 0.0, 0.4])
+    centre = camera_centre(R, np.asarray(gt.t)) + np.array([0.3, 0.0, 0.4])
     shifted = gt.model_copy(update={"t": tuple(float(v) for v in -R @ centre)})
     ev = evaluate_against_ground_truth(shifted, truth)
     assert ev.position_error_m == pytest.approx(0.5, abs=1e-9)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from pipeline.association import MatchedTrack
 from pipeline.camera import (
     CameraModel,
-    camera_center,
+    camera_centre,
     camera_rotation_from_view,
     project_points,
     rotation_angle_rad,
@@ -53,9 +53,9 @@ def make_camera(fx: float = 1000.0, k1: float = 0.0) -> CameraModel:
     )
 
 
-def camera_pose(center: tuple[float, float, float], yaw_deg: float, pitch_down_deg: float) -> Pose:
+def camera_pose(centre: tuple[float, float, float], yaw_deg: float, pitch_down_deg: float) -> Pose:
     R = camera_rotation_from_view(math.radians(yaw_deg), math.radians(pitch_down_deg))
-    return R, -R @ np.asarray(center, dtype=np.float64)
+    return R, -R @ np.asarray(centre, dtype=np.float64)
 
 
 STANDARD = ((0.0, 0.0, 10.0), 0.0, 25.0)  # 10 m high, looking east, 25 deg down
@@ -140,7 +140,7 @@ def perturbed(pose: Pose, rng: np.random.Generator, shift_m: float = 0.5, angle_
     axis = rng.normal(size=3)
     shift = rng.normal(size=3)
     R_new = R @ rotation_from_rvec(axis / np.linalg.norm(axis) * math.radians(angle_deg)).T
-    C_new = camera_center(R, t) + shift / np.linalg.norm(shift) * shift_m
+    C_new = camera_centre(R, t) + shift / np.linalg.norm(shift) * shift_m
     return R_new, -R_new @ C_new
 
 
@@ -153,7 +153,7 @@ def track_ground(tracks: list[MatchedTrack]) -> GroundPlaneFit:
 def pose_errors(result: Refinement, truth: Pose) -> tuple[float, float]:
     """(camera centre error m, rotation error deg)."""
     R, t = truth
-    position = float(np.linalg.norm(result.camera_center - camera_center(R, t)))
+    position = float(np.linalg.norm(result.camera_centre - camera_centre(R, t)))
     return position, math.degrees(rotation_angle_rad(result.R_cam_from_local, R))
 
 
@@ -178,7 +178,7 @@ def test_whole_box_model_and_jacobian_match_projection_and_finite_differences() 
     corners = body_corners(np.concatenate([tr.poses for tr in tracks]), VEHICLE)
     start = perturbed(truth, np.random.default_rng(3))
     R0 = start[0]
-    C0 = camera_center(*start)
+    C0 = camera_centre(*start)
     fun = _whole_box_residuals(
         corners, boxes, np.ones(boxes.shape, dtype=bool), R0, C0, camera, RefinementParams()
     )
@@ -220,7 +220,7 @@ def test_whole_box_converges_to_truth_on_exact_data(fx: float, k1: float) -> Non
     assert result.converged and result.box_rmse_px < 1e-6
     assert start_delta_p(tracks, start, camera, ground) > 0.1
     assert float(np.nanmax(result.delta_p_m)) < 1e-4  # 0 up to the chord sag of the sampled distorted edge
-    np.testing.assert_allclose(result.t_cam_from_local, -result.R_cam_from_local @ result.camera_center)
+    np.testing.assert_allclose(result.t_cam_from_local, -result.R_cam_from_local @ result.camera_centre)
 
 
 def test_whole_box_skips_edges_clipped_at_the_image_border() -> None:
@@ -314,7 +314,7 @@ def test_paper_one_shot_leaves_a_bias_that_the_iterated_bottom_edge_removes() ->
         assert pose_errors(iterated, truth)[1] < 0.01
         # ...but a shift of the camera along its own x axis is invisible to bottom edges (and to delta_p):
         # the error lies all in that direction, stays at the start's, and the covariance names it.
-        error = iterated.camera_center - camera_center(R, t)
+        error = iterated.camera_centre - camera_centre(R, t)
         assert np.linalg.norm(error - (error @ x_axis) * x_axis) < 0.01
         assert abs(error @ x_axis) < 0.5 + 1e-3
         assert abs(float(np.dot(iterated.worst_direction, np.concatenate([[0.0] * 3, x_axis])))) > 0.99
@@ -431,7 +431,7 @@ def test_covariance_matches_the_spread_of_estimates_over_noise_seeds() -> None:
             np.concatenate(
                 [
                     rvec_from_rotation(result.R_cam_from_local.T @ R),
-                    result.camera_center - camera_center(R, t),
+                    result.camera_centre - camera_centre(R, t),
                 ]
             )
         )

@@ -33,7 +33,7 @@ from schemas.common import CameraIntrinsics, VehicleProfile
 
 VEHICLE = VehicleProfile(length=4.6, width=1.9, height=1.5, imu_offset=(1.3, 0.95, 0.4))
 GROUND = GroundPlaneFit(normal=np.array([0.0, 0.0, 1.0]), offset=0.0)
-CAMERA_CENTER = np.array([4.0, -14.0, 8.0])
+CAMERA_CENTRE = np.array([4.0, -14.0, 8.0])
 
 
 def make_camera(dist: tuple[float, float, float, float, float] = (0.0,) * 5) -> CameraModel:
@@ -49,10 +49,10 @@ def straight_poses(count: int = 30) -> np.ndarray:
     )
 
 
-def family_of(camera: CameraModel, R: np.ndarray, center: np.ndarray) -> _LineFamily:
-    """The line family of an exact straight track seen from (R, center): tight boxes of the cuboid."""
+def family_of(camera: CameraModel, R: np.ndarray, centre: np.ndarray) -> _LineFamily:
+    """The line family of an exact straight track seen from (R, centre): tight boxes of the cuboid."""
     poses = straight_poses()
-    corners, depth = project_points(body_corners(poses, VEHICLE).reshape(-1, 3), R, -R @ center, camera)
+    corners, depth = project_points(body_corners(poses, VEHICLE).reshape(-1, 3), R, -R @ centre, camera)
     assert np.all(depth > 0)
     corners = corners.reshape(len(poses), 8, 2)
     boxes = np.column_stack([corners.min(axis=1), corners.max(axis=1)])
@@ -78,9 +78,9 @@ def reference_residuals(x: np.ndarray, family: _LineFamily) -> np.ndarray:
     return np.asarray(residual[0][~family.data.on_border])
 
 
-def pose_vector(R: np.ndarray, center: np.ndarray) -> np.ndarray:
+def pose_vector(R: np.ndarray, centre: np.ndarray) -> np.ndarray:
     up = GROUND.normal
-    return np.array([*_level_angles(R, up), _image_roll(R, up), *center])
+    return np.array([*_level_angles(R, up), _image_roll(R, up), *centre])
 
 
 @settings(max_examples=40, deadline=None)
@@ -108,10 +108,10 @@ def test_box_fit_jacobian_matches_finite_differences(
 ) -> None:
     camera = make_camera((k1, k2, p1, p2, k3))
     R = camera_rotation_from_view(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
-    family = family_of(make_camera(), R, CAMERA_CENTER)  # boxes of the pinhole view, lens of `camera`
+    family = family_of(make_camera(), R, CAMERA_CENTRE)  # boxes of the pinhole view, lens of `camera`
     family = _LineFamily(**{**{f: getattr(family, f) for f in family.__slots__}, "camera": camera})
     # Away from the exact pose, so residuals are not all zero: up to 2 deg and 0.5 m off.
-    x = pose_vector(R, CAMERA_CENTER) + np.array(nudge) * np.radians([2.0, 2.0, 2.0, 0, 0, 0])
+    x = pose_vector(R, CAMERA_CENTRE) + np.array(nudge) * np.radians([2.0, 2.0, 2.0, 0, 0, 0])
     x[3:] += 0.5 * np.array(nudge[3:])
     # Off any exact symmetry (a view straight across the road ties two corners for half the edges, where
     # the derivative is one-sided by nature): a fixed turn far larger than the difference steps below.
@@ -158,8 +158,8 @@ def test_box_fit_jacobian_matches_finite_differences(
 
 def test_box_fit_residuals_of_a_camera_facing_away() -> None:
     R = camera_rotation_from_view(math.radians(95.0), math.radians(18.0), 0.0)
-    family = family_of(make_camera(), R, CAMERA_CENTER)
-    x = pose_vector(R, CAMERA_CENTER)
+    family = family_of(make_camera(), R, CAMERA_CENTRE)
+    x = pose_vector(R, CAMERA_CENTRE)
     x[0] += math.pi  # looking the other way: every corner behind the camera
     values, jacobian = _box_fit_linearised(x, family, jacobian=True)
     assert np.all(values == 1e3) and np.all(jacobian == 0.0)
@@ -174,12 +174,12 @@ def test_box_fit_converges_to_the_exact_pose(
 ) -> None:
     camera = make_camera(dist)
     R = camera_rotation_from_view(math.radians(95.0), math.radians(18.0), math.radians(4.0))
-    family = family_of(camera, R, CAMERA_CENTER)
-    x = pose_vector(R, CAMERA_CENTER)
+    family = family_of(camera, R, CAMERA_CENTRE)
+    x = pose_vector(R, CAMERA_CENTRE)
     start_R = _level_rotation(x[0] + math.radians(3.0), x[1] - math.radians(2.0), GROUND.normal, x[2] + 0.03)
-    fit = _fit_box(family, start_R, CAMERA_CENTER + np.array([0.6, -0.4, 0.3]), None if free_roll else x[2])
+    fit = _fit_box(family, start_R, CAMERA_CENTRE + np.array([0.6, -0.4, 0.3]), None if free_roll else x[2])
     assert rotation_angle_rad(fit.R, R) < math.radians(0.01)
-    assert np.linalg.norm(fit.C - CAMERA_CENTER) < 0.01
+    assert np.linalg.norm(fit.C - CAMERA_CENTRE) < 0.01
     assert fit.misfit < 1e-6
     # At the residual floor (1 % of the box diagonal), the 30-row track fixes every angle to a degree.
     assert 0.0 < fit.rotation_std_deg < 1.0

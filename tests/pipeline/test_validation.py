@@ -7,10 +7,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from pipeline.camera import CameraModel, camera_rotation_from_view
-from pipeline.validation import ValidationEvidence, ValidationGates, count_traversals, validate
+from pipeline.validation import ValidationEvidence, count_traversals, validate
 from schemas.common import CameraIntrinsics
+from schemas.config import GatesConfig
 
 GOOD = ValidationEvidence(
     traversals=3,
@@ -25,7 +27,7 @@ GOOD = ValidationEvidence(
 
 
 def test_good_evidence_is_accepted_with_no_reason() -> None:
-    verdict = validate(GOOD, ValidationGates())
+    verdict = validate(GOOD, GatesConfig())
     assert verdict.is_accepted
     assert verdict.reasons == []
 
@@ -48,7 +50,7 @@ def test_good_evidence_is_accepted_with_no_reason() -> None:
 def test_each_gate_refuses_with_a_reason_naming_quantity_and_value(
     change: dict[str, float], words: str
 ) -> None:
-    verdict = validate(replace(GOOD, **change), ValidationGates())
+    verdict = validate(replace(GOOD, **change), GatesConfig())
     assert not verdict.is_accepted
     assert len(verdict.reasons) == 1
     assert words in verdict.reasons[0]
@@ -56,19 +58,22 @@ def test_each_gate_refuses_with_a_reason_naming_quantity_and_value(
 
 def test_std_gates_hold_at_three_sigma() -> None:
     """0.15 deg passes a 0.5 deg gate at 3 sigma (0.45); 0.17 deg does not (0.51)."""
-    assert validate(replace(GOOD, rotation_std_deg=0.15), ValidationGates()).is_accepted
-    assert not validate(replace(GOOD, rotation_std_deg=0.17), ValidationGates()).is_accepted
-    assert validate(replace(GOOD, rotation_std_deg=0.17), ValidationGates(std_sigmas=1.0)).is_accepted
+    assert validate(replace(GOOD, rotation_std_deg=0.15), GatesConfig()).is_accepted
+    assert not validate(replace(GOOD, rotation_std_deg=0.17), GatesConfig()).is_accepted
+    assert validate(replace(GOOD, rotation_std_deg=0.17), GatesConfig(std_sigmas=1.0)).is_accepted
 
 
 def test_a_single_traversal_is_never_accepted_even_if_configured() -> None:
-    verdict = validate(replace(GOOD, traversals=1), ValidationGates(min_traversals=1))
+    with pytest.raises(ValidationError, match="min_traversals"):
+        GatesConfig(min_traversals=1)
+    # A caller that builds the model unchecked still gets the floor of two.
+    verdict = validate(replace(GOOD, traversals=1), GatesConfig.model_construct(min_traversals=1))
     assert not verdict.is_accepted
     assert "two separate drive-pasts" in verdict.reasons[0]
 
 
 def test_extra_reasons_refuse_and_are_kept_first() -> None:
-    verdict = validate(replace(GOOD, extra_reasons=("ambiguous: x",)), ValidationGates())
+    verdict = validate(replace(GOOD, extra_reasons=("ambiguous: x",)), GatesConfig())
     assert not verdict.is_accepted
     assert verdict.reasons == ["ambiguous: x"]
 

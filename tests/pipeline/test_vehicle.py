@@ -15,11 +15,11 @@ from pipeline.arrays import FloatArray
 from pipeline.camera import rotation_from_ypr
 from pipeline.errors import ShapeError
 from pipeline.vehicle import (
-    body_centers,
+    body_centres,
     body_corners,
     body_points_to_world,
     footprint_corners,
-    reference_from_center_footprint,
+    reference_from_centre_footprint,
 )
 from schemas.common import VehicleProfile
 
@@ -85,7 +85,7 @@ def test_footprint_is_the_bottom_of_the_body_and_the_centre_its_mean(
     np.testing.assert_allclose(heights[:, 4:] - heights[:, :4], profile.height, atol=1e-9)  # roof above each
     roof_offset = np.broadcast_to(profile.height * up[:, None, :], (len(poses), 4, 3))
     np.testing.assert_allclose(corners[:, 4:] - corners[:, :4], roof_offset, atol=1e-9)
-    np.testing.assert_allclose(body_centers(poses, profile), corners.mean(axis=1), atol=1e-9)
+    np.testing.assert_allclose(body_centres(poses, profile), corners.mean(axis=1), atol=1e-9)
 
 
 @settings(max_examples=100, deadline=None)
@@ -112,14 +112,14 @@ def test_footprint_of_a_level_car_heading_east() -> None:
     np.testing.assert_allclose(
         corners[1], [[11.0, 19.0, 0.5], [11.0, 23.0, 0.5], [9.0, 23.0, 0.5], [9.0, 19.0, 0.5]], atol=1e-12
     )
-    np.testing.assert_allclose(body_centers(poses[:1], profile), [[11.0, 20.0, 1.25]], atol=1e-12)
+    np.testing.assert_allclose(body_centres(poses[:1], profile), [[11.0, 20.0, 1.25]], atol=1e-12)
 
 
 @settings(max_examples=100, deadline=None)
 @given(poses=pose_arrays, profile=profiles())
-def test_reference_from_center_footprint_round_trips(poses: FloatArray, profile: VehicleProfile) -> None:
-    centers = footprint_corners(poses, profile).mean(axis=1)
-    reference = reference_from_center_footprint(centers, poses[:, 3], poses[:, 4], poses[:, 5], profile)
+def test_reference_from_centre_footprint_round_trips(poses: FloatArray, profile: VehicleProfile) -> None:
+    centres = footprint_corners(poses, profile).mean(axis=1)
+    reference = reference_from_centre_footprint(centres, poses[:, 3], poses[:, 4], poses[:, 5], profile)
     np.testing.assert_allclose(reference, poses[:, :3], atol=1e-9)
 
 

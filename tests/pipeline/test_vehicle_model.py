@@ -137,7 +137,7 @@ def test_exact_boxes_give_back_pose_shift_shape_and_bias():
         grow_std_px=1e4,
     )
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, flat)
-    assert np.linalg.norm(fit.camera_center - C_TRUE) < 1e-3
+    assert np.linalg.norm(fit.camera_centre - C_TRUE) < 1e-3
     assert math.degrees(rotation_angle_rad(fit.R_cam_from_local, R_TRUE)) < 1e-3
     assert abs(fit.time_shift_s - SHIFT_TRUE_S) < 1e-4
     assert np.allclose(fit.bias, BIAS_TRUE, atol=1e-2)
@@ -150,7 +150,7 @@ def test_noisy_boxes_error_within_three_reported_std():
         trajectory, tracks = _scene(noise_px=1.0, seed=seed, ar=0.8)
         R0, t0 = _start(seed)
         fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
-        error_m = float(np.linalg.norm(fit.camera_center - C_TRUE))
+        error_m = float(np.linalg.norm(fit.camera_centre - C_TRUE))
         error_deg = math.degrees(rotation_angle_rad(fit.R_cam_from_local, R_TRUE))
         # Sanity bounds (three short passes, 1 px of strongly correlated jitter: measured 0.03-0.17 m and
         # 0.04-0.64 deg); what matters is that the reported std covers the error (below).

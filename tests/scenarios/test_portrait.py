@@ -15,6 +15,8 @@ from pipeline.calibrate import PipelineParams, calibrate
 from pipeline.metrics import evaluate_against_ground_truth
 from sim.simulate import simulate
 
+CREATED_AT_NS = 1_700_000_000_000_000_000  # the result's creation time: the caller's clock
+
 pytestmark = pytest.mark.slow
 
 
@@ -22,7 +24,7 @@ def test_portrait_camera_is_calibrated() -> None:
     sim = simulate("portrait", seed=0, ideal=True)
     (camera,) = sim.cameras
     inputs = calibration_inputs(sim, camera.camera_id)
-    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0))
+    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0), created_at_ns=CREATED_AT_NS)
     assert outcome.result.verdict.status == "accepted", outcome.result.verdict.reasons
     # The accuracy bounds (measured: 0.08 m, 0.08 deg, delta_p 0.035 m). Assumed upright, the
     # straight drives gave poses ~85 deg off and the result was refused.

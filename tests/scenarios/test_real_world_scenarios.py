@@ -20,6 +20,8 @@ from pipeline.calibrate import CalibrationOutcome, PipelineParams, calibrate
 from pipeline.metrics import Evaluation, evaluate_against_ground_truth
 from sim.simulate import simulate
 
+CREATED_AT_NS = 1_700_000_000_000_000_000  # the result's creation time: the caller's clock
+
 pytestmark = pytest.mark.slow
 
 CALIBRATION_SEED = 0
@@ -33,7 +35,9 @@ def _run(preset: str, seed: int) -> tuple[CalibrationOutcome, Evaluation, float]
     truth = sim.ground_truth[camera.camera_id]
     inputs = calibration_inputs(sim, camera.camera_id)
     assert inputs.time_offset_ns == 0  # the latency is not told to the method
-    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED))
+    outcome = calibrate(
+        inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED), created_at_ns=CREATED_AT_NS
+    )
     evaluation = evaluate_against_ground_truth(outcome.result, truth)
     return outcome, evaluation, (truth.clock_offset_ns - truth.latency_ns) / 1e6
 

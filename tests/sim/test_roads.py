@@ -272,7 +272,7 @@ def test_every_route_is_on_the_carriageway_and_every_camera_off_it(name: str) ->
     config = PRESETS[name]
     surface = ground(config.road, config.ground)
     for route in network(config.road).routes.values():
-        left = np.stack([-np.sin(route.path.heading), np.cos(route.path.heading)], axis=1)
+        left = np.stack([-np.sin(route.path.yaw), np.cos(route.path.yaw)], axis=1)
         for offset in (-1.3, 0.0, 1.3):
             assert np.all(surface.surface_kind(route.path.xy + offset * left) == CARRIAGEWAY), route.name
     masts = np.array([[camera.x_m, camera.y_m] for camera in config.cameras])

@@ -25,7 +25,7 @@ from pipeline.vehicle import footprint_corners
 from schemas.common import CameraIntrinsics
 from sim.detector import Instances, hidden_fractions, project_boxes, render_frames
 from sim.errors import SimulationError
-from sim.geometry import camera_position as camera_center
+from sim.geometry import camera_position as camera_centre
 from sim.geometry import mount_rotation as camera_rotation_from_view
 from sim.lens import Lens
 from sim.presets import PRESETS, DetectorSpec, ScenarioConfig
@@ -289,8 +289,8 @@ def test_camera_ground_truth_is_consistent(noisy: SimulationResult) -> None:
     origin = np.array(truth.origin)
     np.testing.assert_allclose(R, camera.R_cam_from_local)
     np.testing.assert_allclose(np.array(truth.t_utm), t_local - R @ origin)
-    np.testing.assert_allclose(np.array(truth.camera_position_utm), camera_center(R, t_local) + origin)
-    height = camera_center(R, t_local)[2] - noisy.world.ground_height(camera_center(R, t_local)[None, :2])[0]
+    np.testing.assert_allclose(np.array(truth.camera_position_utm), camera_centre(R, t_local) + origin)
+    height = camera_centre(R, t_local)[2] - noisy.world.ground_height(camera_centre(R, t_local)[None, :2])[0]
     assert height == pytest.approx(10.0)
     assert truth.station_id == noisy.station_id and truth.crs == noisy.origin.crs
 
@@ -315,7 +315,7 @@ def test_vehicle_is_out_of_view_between_traversals(
 def test_two_cameras_of_one_rsu(two_cameras: SimulationResult) -> None:
     ids = [c.camera_id for c in two_cameras.cameras]
     assert ids == ["west-junction", "west-arm"]
-    centres = [camera_center(c.R_cam_from_local, c.t_cam_from_local) for c in two_cameras.cameras]
+    centres = [camera_centre(c.R_cam_from_local, c.t_cam_from_local) for c in two_cameras.cameras]
     np.testing.assert_allclose(centres[0], centres[1])  # one mast
     axes = [c.R_cam_from_local[2] for c in two_cameras.cameras]
     assert float(axes[0] @ axes[1]) < 0.5  # looking at different arms

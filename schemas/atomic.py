@@ -1,9 +1,13 @@
-"""Durable atomic file writes: the one helper every rsucal file write goes through (results, camera state).
+"""Durable atomic file writes: the one helper every rsucal file write goes through (results, camera state,
+reports, the site config, the simulator's files).
 
 A temporary file beside the target (one fixed name per target), its data fsynced, os.replace onto the
 target, then a fsync of the directory: a crash or power loss at any point leaves either the old or the new
-file whole, never a half-written one, and a completed write survives. (sim/files.py keeps its own copy:
-the simulator imports nothing of the daemon or the pipeline.)
+file whole, never a half-written one, and a completed write survives.
+
+It lives in schemas/ (standard library only) because schemas is the one package that the pipeline, the
+daemon and the simulator all import and that imports none of them: the simulator may import nothing of the
+daemon or the pipeline (tests/project/test_architecture.py).
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ def _make_dirs(directory: Path, root: Path | None) -> None:
 
 
 def fsync_dir(directory: Path) -> None:
+    """Make the directory's entries (a new or renamed file) durable: a power cut could otherwise lose them."""
     fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     try:
         os.fsync(fd)
