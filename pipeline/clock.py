@@ -26,19 +26,16 @@ from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from pipeline.arrays import FloatArray, IntArray
 from pipeline.association import MatchedTrack
 from pipeline.camera import CameraModel, rotation_from_rvec, rvec_from_rotation
 from pipeline.grouping import GroupingParams, group_hypotheses
-from pipeline.hypotheses import Hypothesis, HypothesisSet
+from pipeline.hypotheses import Hypothesis, HypothesisSet, lm_refine
 from pipeline.tracking import FrameBoxes
 from pipeline.vehicle import body_centres
 from schemas.common import VehicleProfile
-
-_LM_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 1e-10)
 
 # Matched tracks on the clock shifted by s seconds: track id -> track (the caller pairs boxes and poses).
 Rematch = Callable[[float], Mapping[int, MatchedTrack]]
@@ -113,21 +110,12 @@ def refitted(
     rows = np.flatnonzero(hypothesis.inliers)
     points = body_centres(track.poses[rows], vehicle)
     pixels = track.box_centres[rows]
-    try:
-        rvec, tvec = cv2.solvePnPRefineLM(
-            points,
-            pixels,
-            camera.K,
-            camera.dist,
-            rvec_from_rotation(hypothesis.R_cam_from_local).reshape(3, 1).copy(),
-            hypothesis.t_cam_from_local.reshape(3, 1).copy(),
-            _LM_CRITERIA,
-        )
-    except cv2.error:
+    refined = lm_refine(
+        points, pixels, rvec_from_rotation(hypothesis.R_cam_from_local), hypothesis.t_cam_from_local, camera
+    )
+    if refined is None:
         return hypothesis
-    rvec, tvec = np.asarray(rvec, dtype=np.float64).ravel(), np.asarray(tvec, dtype=np.float64).ravel()
-    if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
-        return hypothesis
+    rvec, tvec = refined
     return dataclasses.replace(hypothesis, R_cam_from_local=rotation_from_rvec(rvec), t_cam_from_local=tvec)
 
 

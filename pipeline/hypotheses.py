@@ -554,20 +554,9 @@ def _refits(points: Points3, pixels: Pixels, start: _Pose, camera: CameraModel) 
     refits: list[_Pose] = []
 
     def refine_lm(pose: _Pose) -> None:
-        try:
-            # (3, 1) in and out: given (3,) arrays, cv2 refines a temporary copy and returns the start.
-            rvec, tvec = cv2.solvePnPRefineLM(
-                points,
-                pixels,
-                camera.K,
-                camera.dist,
-                pose.rvec.reshape(3, 1).copy(),
-                pose.tvec.reshape(3, 1).copy(),
-                _LM_CRITERIA,
-            )
-        except cv2.error:
-            return
-        _append_finite(refits, rvec, tvec, pose.solver + "+lm")
+        refined = lm_refine(points, pixels, pose.rvec, pose.tvec, camera)
+        if refined is not None:
+            _append_finite(refits, refined[0], refined[1], pose.solver + "+lm")
 
     refine_lm(start)
     try:
@@ -577,6 +566,31 @@ def _refits(points: Points3, pixels: Pixels, start: _Pose, camera: CameraModel) 
     if found and _append_finite(refits, rvec, tvec, "sqpnp"):
         refine_lm(refits[-1])
     return refits
+
+
+def lm_refine(
+    points: Points3, pixels: Pixels, rvec: FloatArray, tvec: FloatArray, camera: CameraModel
+) -> tuple[FloatArray, FloatArray] | None:
+    """Levenberg-Marquardt on the reprojection error of points (N, 3) <-> pixels (N, 2) from (rvec, tvec);
+    None when OpenCV fails or returns a non-finite pose."""
+    try:
+        # (3, 1) in and out: given (3,) arrays, cv2 refines a temporary copy and returns the start.
+        found = cv2.solvePnPRefineLM(
+            points,
+            pixels,
+            camera.K,
+            camera.dist,
+            np.asarray(rvec, dtype=np.float64).reshape(3, 1).copy(),
+            np.asarray(tvec, dtype=np.float64).reshape(3, 1).copy(),
+            _LM_CRITERIA,
+        )
+    except cv2.error:
+        return None
+    rvec_out = np.asarray(found[0], dtype=np.float64).reshape(3)
+    tvec_out = np.asarray(found[1], dtype=np.float64).reshape(3)
+    if not (np.all(np.isfinite(rvec_out)) and np.all(np.isfinite(tvec_out))):
+        return None
+    return rvec_out, tvec_out
 
 
 def _append_finite(poses: list[_Pose], rvec: object, tvec: object, solver: str) -> bool:

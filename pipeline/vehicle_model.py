@@ -101,6 +101,15 @@ class ModelParams:
     # A left-out traversal disagrees when the others predict its boxes with a mean squared Mahalanobis
     # residual above this (1 expected: prediction uncertainty and noise both counted; see check_traversals).
     holdout_chi2_per_residual: float = 4.0
+    # ... or when the boxes of the left-out traversal pull the others' pose further than their uncertainty,
+    # the prediction's and the noise allow: a chi-square of 6 degrees of freedom above this (p about 4e-5).
+    # The per-residual statistic divides a pose offset, a 6-dimensional signal, by the hundreds of residuals
+    # of a drive-past: a drive-past seen from a camera moved 1 m scored 1.0 on it, and 37-11000 on this.
+    holdout_pull_chi2: float = 30.0
+    # Moves below these never make traversals disagree (the first simulator's drifting poses moved the pose
+    # by 0.02 m / 0.06 deg between drive-pasts that agree).
+    min_disagreement_m: float = 0.1
+    min_disagreement_deg: float = 0.1
     shape_step: float = 1e-4  # finite-difference step of the shape parameters (m) and the time shift (s)
 
     def prior_std(self) -> FloatArray:
@@ -757,12 +766,24 @@ def check_traversals(
         # only where it matters: leaving the traversal out must also move the pose by more than 3 of the
         # joint fit's stds (the first simulator's drifting poses made traversals differ by 3-5 x the noise in
         # pixels while moving the pose by 0.02 m / 0.06 deg).
-        statistic, predicted = _holdout_statistic(loo, clusters[index], trajectory, camera, vehicle, params)
+        statistic, predicted, pull = _holdout_statistic(
+            loo, clusters[index], trajectory, camera, vehicle, params
+        )
         material = shift > 3.0 * fit.position_std_m or angle > 3.0 * fit.rotation_std_deg
         if statistic > params.holdout_chi2_per_residual and material:
             problems.append(
                 f"the others predict traversal {index + 1}'s boxes {predicted:.1f} px off, "
                 f"{statistic:.1f} x the variance their uncertainty and the detector's noise allow"
+            )
+        elif pull > params.holdout_pull_chi2 and (
+            shift > max(3.0 * loo.position_std_m, params.min_disagreement_m)
+            or angle > max(3.0 * loo.rotation_std_deg, params.min_disagreement_deg)
+        ):
+            # Material against the fit without it: a foreign drive-past inflates the joint fit's own std
+            # (its residuals are correlated: rho 0.95 with one drive-past 1 m off), which hid a 0.6 m move.
+            problems.append(
+                f"traversal {index + 1}'s boxes pull the others' pose by a chi-square of {pull:.0f} "
+                f"(6 dof) > {params.holdout_pull_chi2:.0f}"
             )
     k = len(deltas)
     covariance = None
@@ -795,35 +816,52 @@ def _holdout_statistic(
     camera: CameraModel,
     vehicle: VehicleProfile,
     params: ModelParams,
-) -> tuple[float, float]:
-    """How well the fit without a traversal predicts that traversal's boxes: r^T (D + J S J^T)^-1 r / m
-    over its m residuals r (px), with S the left-out fit's full covariance, J the residuals' Jacobian and D
-    the detector noise and model misfit the other traversals show (per edge and box size, correlation
-    included); residuals beyond 3 of their own std are clipped there (outlier boxes). Also returns the
-    median |r|."""
+) -> tuple[float, float, float]:
+    """How well the fit without a traversal predicts that traversal's boxes, two ways.
+
+    With r the left-out boxes' residuals (px) under the fit without them, J their Jacobian, S that fit's
+    full covariance and D the detector noise and model misfit the other traversals show (per edge and box
+    size, correlation included), the prediction's covariance is C = D + J S J^T. Returned: the mean squared
+    Mahalanobis residual r^T C^-1 r / m over the m residuals (residuals beyond 3 of their own std clipped
+    there: outlier boxes); the median |r|; and the pull, b^T A^-1 b with A = Jp^T C^-1 Jp, b = Jp^T C^-1 r
+    (Jp the pose columns): the chi-square, 6 degrees of freedom, of the pose offset the left-out boxes ask
+    for. The pull's residuals are clipped about each edge's median instead, so that an offset common to the
+    drive-past survives while single outlier boxes do not."""
     model, x = _model_of(loo, held_out, trajectory, camera, vehicle, params)
     boxes = model.data.boxes
     model.data_scale = np.ones(model.data_rows)
-    r = model.residuals(x)[: model.data_rows]
+    residuals = model.residuals(x)[: model.data_rows]
     J = model.jacobian(x)[: model.data_rows]
-    if len(r) == 0:
-        return 0.0, 0.0
+    if len(residuals) == 0:
+        return 0.0, 0.0, 0.0
     height = np.maximum(boxes[:, 3] - boxes[:, 1], 1.0)[model.box_index]
     # The noise as the other traversals measured it: a foreign traversal would inflate the joint fit's.
     sigma = np.sqrt(loo.sigma_px**2 + (loo.edge_fraction[model.edge_index] * height) ** 2)
     sigma *= math.sqrt((1.0 + loo.rho) / (1.0 - loo.rho))
-    r = np.clip(r, -3.0 * sigma, 3.0 * sigma)
-    # Woodbury: (D + J S J^T)^-1 = D^-1 - D^-1 J (S^-1 + J^T D^-1 J)^-1 J^T D^-1.
+    r = np.clip(residuals, -3.0 * sigma, 3.0 * sigma)
+    # Woodbury: C^-1 = (D + J S J^T)^-1 = D^-1 - D^-1 J (S^-1 + J^T D^-1 J)^-1 J^T D^-1.
     inv_d = 1.0 / sigma**2
     # Each drive-past's positions carry their own GNSS offset (pose_bias_std_m per axis): to the boxes of
     # the left-out one it looks like a shift of the camera centre, so it joins the prediction's covariance.
     S = loo.full_covariance.copy()
     S[3:6, 3:6] += params.pose_bias_std_m**2 * np.eye(3)
-    S_inv = _inverse(S)
-    inner = S_inv + J.T @ (inv_d[:, None] * J)
-    v = J.T @ (inv_d * r)
-    quadratic = float(np.sum(inv_d * r * r) - v @ np.linalg.solve(inner, v))
-    return max(quadratic, 0.0) / len(r), float(np.median(np.abs(r)))
+    inner = _inverse(_inverse(S) + J.T @ (inv_d[:, None] * J))
+
+    def c_inv(M: FloatArray) -> FloatArray:
+        DM = inv_d[:, None] * M if M.ndim == 2 else inv_d * M
+        return np.asarray(DM - (inv_d[:, None] * J) @ (inner @ (J.T @ DM)), dtype=np.float64)
+
+    quadratic = float(r @ c_inv(r))
+    median = np.zeros_like(residuals)
+    for edge in range(4):
+        on_edge = model.edge_index == edge
+        if np.any(on_edge):
+            median[on_edge] = np.median(residuals[on_edge])
+    centred = median + np.clip(residuals - median, -3.0 * sigma, 3.0 * sigma)
+    Jp = J[:, :6]
+    b = Jp.T @ c_inv(centred)
+    pull = float(b @ _inverse(Jp.T @ c_inv(Jp)) @ b)
+    return max(quadratic, 0.0) / len(r), float(np.median(np.abs(r))), max(pull, 0.0)
 
 
 def _median_abs(residuals: FloatArray) -> float:
