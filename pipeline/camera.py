@@ -8,7 +8,7 @@ because the simulator and the refinement project millions of points in small bat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -25,6 +25,12 @@ class CameraModel:
     dist: FloatArray
     width: int
     height: int
+    # Whether any distortion coefficient is non-zero; fixed at construction (asked at every projection in
+    # the solvers' inner loops).
+    has_distortion: bool = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "has_distortion", bool(np.any(np.asarray(self.dist) != 0.0)))
 
     @staticmethod
     def from_intrinsics(intrinsics: CameraIntrinsics) -> CameraModel:
@@ -34,10 +40,6 @@ class CameraModel:
         return CameraModel(
             K, np.array(intrinsics.dist, dtype=np.float64), intrinsics.width, intrinsics.height
         )
-
-    @property
-    def has_distortion(self) -> bool:
-        return bool(np.any(self.dist != 0.0))
 
 
 def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:

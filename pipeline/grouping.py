@@ -220,7 +220,9 @@ def _scores_against_all(
     count, rows = len(R_all), len(view.positions)
     if rows == 0:
         return np.ones(count), np.zeros(count)
-    points_cam = np.einsum("hab,nb->hna", R_all, view.positions) + t_all[:, None, :]  # (H, N, 3)
+    # (H, N, 3): "hab,nb->hna" contracted in the order einsum runs fast and transposed (the same values).
+    rotated = np.einsum("hab,nb->han", R_all, view.positions).transpose(0, 2, 1)
+    points_cam = np.ascontiguousarray(rotated + t_all[:, None, :])
     depth = points_cam[..., 2]
     in_front = depth > 1e-6
     safe = points_cam.reshape(-1, 3).copy()

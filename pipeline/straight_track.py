@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -121,6 +121,11 @@ _BOX_FIT_ITERATIONS = 25
 _BOX_FIT_SETTLED_STEPS = np.array([1e-5, 1e-5, 1e-5, 1e-3, 1e-3, 1e-3])
 
 
+_IS_U_EDGE = np.array([True, False, True, False])  # x1, y1, x2, y2
+# Column offsets of the u (0) and v (8) values per edge in the (M, 16) [u | v] of a box's 8 corners.
+_UV_COLUMN = np.array([0, 8, 0, 8])
+
+
 @dataclass(frozen=True, slots=True)
 class _BoxData:
     """A track's boxes (M, 4) px with the vehicle cuboid's corners (M * 8, 3) local m at the same rows, the
@@ -131,6 +136,21 @@ class _BoxData:
     corners: Points3
     scale: FloatArray
     on_border: BoolArray
+    # What each box-fit step needs of the E edges off the border, fixed per track: the mask (M, 4), whether
+    # each is a u edge (E,), its box's scale (E,) and the index of its box's first corner (E,).
+    keep: BoolArray = field(init=False, repr=False, compare=False)
+    kept_is_u: BoolArray = field(init=False, repr=False, compare=False)
+    kept_scale: FloatArray = field(init=False, repr=False, compare=False)
+    kept_first_corner: IntArray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        rows = len(self.boxes)
+        keep = ~self.on_border
+        object.__setattr__(self, "keep", keep)
+        object.__setattr__(self, "kept_is_u", np.broadcast_to(_IS_U_EDGE, (rows, 4))[keep])
+        object.__setattr__(self, "kept_scale", np.broadcast_to(self.scale, (rows, 4))[keep])
+        first = np.broadcast_to(8 * np.arange(rows)[:, None], (rows, 4))
+        object.__setattr__(self, "kept_first_corner", first[keep])
 
     @staticmethod
     def of(boxes: Boxes, poses: PoseArray, vehicle: VehicleProfile, camera: CameraModel) -> _BoxData:
@@ -520,12 +540,12 @@ class _BoxFitPoint:
     @staticmethod
     def at(x: FloatArray, family: _LineFamily) -> _BoxFitPoint:
         data, camera = family.data, family.camera
-        keep = ~data.on_border
+        keep = data.keep
         R, _ = _box_fit_rotation(x, family, derivatives=False)
         points_cam = (data.corners - x[3:6]) @ R.T
         depth = points_cam[:, 2]
-        if not bool(np.all(depth > 1e-6)):
-            edges = int(np.count_nonzero(keep))
+        if not (depth > 1e-6).all():
+            edges = len(data.kept_scale)
             empty = np.zeros(0, dtype=np.int64)
             return _BoxFitPoint(x, np.full(edges, 1e3), False, empty, np.zeros(0, dtype=bool), np.zeros(0))
         xy = points_cam[:, :2] / depth[:, None]
@@ -536,13 +556,10 @@ class _BoxFitPoint:
         u = (K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]).reshape(rows, 8)
         v = (K[1, 1] * xy[:, 1] + K[1, 2]).reshape(rows, 8)
         extremes = np.column_stack([u.argmin(axis=1), v.argmin(axis=1), u.argmax(axis=1), v.argmax(axis=1)])
-        index = np.arange(rows)[:, None]
-        is_u = np.broadcast_to(np.array([True, False, True, False]), (rows, 4))
-        model = np.where(is_u, u[index, extremes], v[index, extremes])
-        scale = np.broadcast_to(data.scale, (rows, 4))
-        values = ((model - data.boxes) / scale)[keep]
-        corner = (8 * index + extremes)[keep]
-        return _BoxFitPoint(x, values, True, corner, is_u[keep], scale[keep])
+        model = np.take_along_axis(np.concatenate([u, v], axis=1), extremes + _UV_COLUMN, axis=1)
+        values = ((model - data.boxes) / data.scale)[keep]
+        corner = data.kept_first_corner + extremes[keep]
+        return _BoxFitPoint(x, values, True, corner, data.kept_is_u, data.kept_scale)
 
     def jacobian(self, family: _LineFamily) -> FloatArray:
         """d values / d x (E, 6)."""
@@ -553,7 +570,8 @@ class _BoxFitPoint:
         offsets = family.data.corners[self.corner] - x[3:6]  # (E, 3) corner minus camera centre
         points_cam = offsets @ R.T
         d_cam = np.empty((len(offsets), 3, 6))  # d points_cam / d x
-        d_cam[:, :, :3] = np.einsum("ajk,nk->nja", dR, offsets)
+        # "ajk,nk->nja" contracted in the order einsum runs fast and transposed: the same values, bit for bit.
+        d_cam[:, :, :3] = np.einsum("ajk,nk->naj", dR, offsets).transpose(0, 2, 1)
         d_cam[:, :, 3:] = -R
         inv_depth = 1.0 / points_cam[:, 2]
         xn, yn = points_cam[:, 0] * inv_depth, points_cam[:, 1] * inv_depth
@@ -579,29 +597,34 @@ class _BoxFitPoint:
 def _box_fit_rotation(
     x: FloatArray, family: _LineFamily, *, derivatives: bool
 ) -> tuple[Rotation, FloatArray]:
-    """R_cam_from_local of the box fit's pose x (`_level_rotations` for one pose, written out for one:
-    it runs at every step of every fit) and, with `derivatives`, dR/d(yaw, pitch, roll) (3, 3, 3), else
-    an empty array."""
-    up = family.ground.normal
-    east, north = family.basis
+    """R_cam_from_local of the box fit's pose x (`_level_rotations` for one pose, written out for one in
+    Python floats, the same operations in the same order: it runs at every step of every fit) and, with
+    `derivatives`, dR/d(yaw, pitch, roll) (3, 3, 3), else an empty array."""
+    up = family.ground.normal.tolist()
+    east, north = family.basis[0].tolist(), family.basis[1].tolist()
     c, s = math.cos(float(x[0])), math.sin(float(x[0]))
     cp, sp = math.cos(float(x[1])), math.sin(float(x[1]))
     cr, sr = math.cos(float(x[2])), math.sin(float(x[2]))
-    horizontal = c * east + s * north
-    right0 = s * east - c * north  # d horizontal / d yaw = -right0, d right0 / d yaw = horizontal
-    down0 = -sp * horizontal - cp * up
-    forward = cp * horizontal - sp * up
-    right = cr * right0 + sr * down0
-    down = -sr * right0 + cr * down0
-    R = np.stack([right, down, forward])
+    horizontal = [c * e + s * n for e, n in zip(east, north, strict=True)]
+    right0 = [s * e - c * n for e, n in zip(east, north, strict=True)]  # d horizontal / d yaw = -right0
+    down0 = [-sp * h - cp * u for h, u in zip(horizontal, up, strict=True)]
+    forward = [cp * h - sp * u for h, u in zip(horizontal, up, strict=True)]
+    right = [cr * r + sr * d for r, d in zip(right0, down0, strict=True)]
+    down = [-sr * r + cr * d for r, d in zip(right0, down0, strict=True)]
+    R = np.array([right, down, forward])
     if not derivatives:
         return R, np.zeros(0)
-    down0_pitch = -cp * horizontal + sp * up  # d down0 / d pitch
+    down0_pitch = [-cp * h + sp * u for h, u in zip(horizontal, up, strict=True)]  # d down0 / d pitch
+    srsp, crsp = sr * sp, cr * sp
     dR = np.array(
         [
-            [cr * horizontal + sr * sp * right0, -sr * horizontal + cr * sp * right0, -cp * right0],
-            [sr * down0_pitch, cr * down0_pitch, down0],
-            [down, -right, np.zeros(3)],
+            [
+                [cr * h + srsp * r for h, r in zip(horizontal, right0, strict=True)],
+                [-sr * h + crsp * r for h, r in zip(horizontal, right0, strict=True)],
+                [-cp * r for r in right0],
+            ],
+            [[sr * d for d in down0_pitch], [cr * d for d in down0_pitch], down0],
+            [down, [-r for r in right], [0.0, 0.0, 0.0]],
         ]
     )
     return R, dR

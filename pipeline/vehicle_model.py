@@ -44,7 +44,7 @@ from scipy.optimize import least_squares, nnls
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, Stamps, Vec3
 from pipeline.association import MatchedTrack, Trajectory, select_rows
-from pipeline.camera import CameraModel, camera_centre, rvec_from_rotation
+from pipeline.camera import CameraModel, camera_centre, rotation_from_ypr, rvec_from_rotation
 from pipeline.errors import DegenerateGeometry
 from pipeline.refinement import (
     _camera_points,
@@ -55,7 +55,7 @@ from pipeline.refinement import (
     _project_jacobian,
     _robust_weights,
 )
-from pipeline.vehicle import body_points_to_world
+from pipeline.vehicle import body_points_to_world, rotated_body_points
 from schemas.common import VehicleProfile
 
 _POSE, _DELTA, _SHAPE, _BIAS = slice(0, 6), 6, slice(7, 13), slice(13, 18)
@@ -202,11 +202,40 @@ class PoseSampler:
         poses[:, 3] = np.unwrap(poses[:, 3])
         self.poses = poses
 
+    @staticmethod
+    def of(trajectory: Trajectory) -> PoseSampler:
+        """The sampler of `trajectory`, reused while the same trajectory object is asked for again (the
+        final fit samples one trajectory for hundreds of tracks and fits: unwrapping it each time cost more
+        than the fits' sampling)."""
+        last = _last_sampler
+        if last is not None and last[0] is trajectory:
+            return last[1]
+        sampler = PoseSampler(trajectory)
+        _remember_sampler((trajectory, sampler))
+        return sampler
+
     def seconds(self, stamps: Stamps) -> FloatArray:
         return np.asarray((stamps - self.t0).astype(np.float64) / 1e9, dtype=np.float64)
 
     def at(self, t_s: FloatArray) -> FloatArray:
-        return np.column_stack([np.interp(t_s, self.times, self.poses[:, k]) for k in range(6)])
+        """np.interp of each column, held at the ends (one search for all six: the same arithmetic)."""
+        times, poses = self.times, self.poses
+        j = np.clip(np.searchsorted(times, t_s, side="right") - 1, 0, len(times) - 2)
+        slope = (poses[j + 1] - poses[j]) / (times[j + 1] - times[j])[:, None]
+        out = slope * (t_s - times[j])[:, None] + poses[j]
+        out[t_s <= times[0]] = poses[0]
+        out[t_s >= times[-1]] = poses[-1]
+        return np.asarray(out, dtype=np.float64)
+
+
+# The last trajectory sampled and its sampler (PoseSampler.of); a strong reference, so `is` cannot match
+# a new object at a recycled address.
+_last_sampler: tuple[Trajectory, PoseSampler] | None = None
+
+
+def _remember_sampler(entry: tuple[Trajectory, PoseSampler]) -> None:
+    global _last_sampler
+    _last_sampler = entry
 
 
 @dataclass(frozen=True, slots=True)
@@ -228,7 +257,7 @@ def fit_vehicle_model(
     params: ModelParams,
 ) -> ModelFit:
     """Fit pose, time shift, template and detector bias to the tracks' boxes, from the given pose."""
-    sampler = PoseSampler(trajectory)
+    sampler = PoseSampler.of(trajectory)
     if not tracks or sum(len(t.boxes) for t in tracks) == 0:
         raise DegenerateGeometry("joint fit: no boxes")
     data = _data_of(tracks, sampler, camera, params)
@@ -295,6 +324,11 @@ class _Model:
         self.prior_jacobian = np.diag(self.prior_weight)[self.has_prior]  # constant: the priors are linear
         self.box_index, self.edge_index = np.nonzero(data.used)
         self._cache: dict[str, FloatArray] = {}
+        # What the Jacobian at the cached x reuses: raw boxes, camera points, edge corners, R, poses,
+        # body rotations, projected points.
+        self._state: (
+            tuple[Boxes, FloatArray, IntArray, Rotation, FloatArray, FloatArray, FloatArray] | None
+        ) = None
         self.data_scale = np.ones(len(self.box_index))  # px per unit, per data row
         self.f_scale = 1.0  # where the robust loss bends, in data-row units
         self.sigma_px = params.f_scale_px
@@ -343,13 +377,36 @@ class _Model:
         n, k = world.shape[:2]
         cam = _camera_points(world.reshape(-1, 3), R, C)
         uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
-        corner = np.column_stack(
-            [uv[:, :, 0].argmin(1), uv[:, :, 1].argmin(1), uv[:, :, 0].argmax(1), uv[:, :, 1].argmax(1)]
-        )
-        rows = np.arange(n)[:, None]
-        axis = np.array([0, 1, 0, 1])
-        raw = uv[rows, corner, axis]
+        raw, corner = _tight_boxes(uv)
         return raw, cam.reshape(n, k, 3), corner, R
+
+    def _shape_steps(
+        self, x: FloatArray, poses: FloatArray, R_body: FloatArray, uv: FloatArray
+    ) -> FloatArray:
+        """The raw boxes (6, N, 4) with each shape parameter in turn stepped by shape_step (the forward
+        differences of the template), from the poses, body rotations and projected template points (N, 12,
+        2) at x: only the points a step moves (20 of the 6 x 12) are placed and projected again."""
+        points = template_points(x[_SHAPE], self.vehicle)
+        point_sets, moved = [], []
+        for j in range(_SHAPE.start, _SHAPE.stop):
+            xp = x.copy()
+            xp[j] += self.params.shape_step
+            stepped = template_points(xp[_SHAPE], self.vehicle)
+            moved.append(np.any(stepped != points, axis=1))
+            point_sets.append(stepped[moved[-1]])
+        R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
+        world = rotated_body_points(R_body, poses, np.vstack(point_sets), self.vehicle)
+        n, k = world.shape[:2]
+        cam = _camera_points(world.reshape(-1, 3), R, C)
+        moved_uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
+        stepped_uv = np.broadcast_to(uv, (len(moved), *uv.shape)).copy()
+        start = 0
+        for j, rows in enumerate(moved):
+            stop = start + int(rows.sum())
+            stepped_uv[j][:, rows] = moved_uv[:, start:stop]
+            start = stop
+        stepped_raw, _ = _tight_boxes(stepped_uv.reshape(-1, *uv.shape[1:]))
+        return stepped_raw.reshape(len(moved), n, 4)
 
     @staticmethod
     def biased(raw: Boxes, bias: FloatArray) -> Boxes:
@@ -368,53 +425,71 @@ class _Model:
         )
 
     def _evaluate(self, x: FloatArray) -> None:
+        """The residuals at x (the Jacobian only when asked for: the solver does not need it at the points
+        whose step it rejects)."""
         if "x" in self._cache and np.array_equal(self._cache["x"], x):
             return
-        raw, cam, corner, R = self.raw(x)
+        R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
+        poses = self.sampler.at(self.data.t_s - x[_DELTA])
+        R_body = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
+        world = rotated_body_points(R_body, poses, template_points(x[_SHAPE], self.vehicle), self.vehicle)
+        n, k = world.shape[:2]
+        cam = _camera_points(world.reshape(-1, 3), R, C)
+        uv = _project(cam, self.camera, self.params.min_depth_m).reshape(n, k, 2)
+        raw, corner = _tight_boxes(uv)
         model = self.biased(raw, x[_BIAS])
         bi, ei = self.box_index, self.edge_index
         residual = model[bi, ei] - self.data.boxes[bi, ei]
+        prior_r = ((x - self.mean) * self.prior_weight)[self.has_prior]
+        self._cache = {
+            "x": x.copy(),
+            "r": np.concatenate([residual / self.data_scale, prior_r]),
+            "model": model,
+        }
+        self._state = (raw, cam.reshape(n, k, 3), corner, R, poses, R_body, uv)
+
+    def _evaluate_jacobian(self, x: FloatArray) -> None:
+        self._evaluate(x)
+        if "J" in self._cache:
+            return
+        assert self._state is not None
+        raw, cam, corner, R, poses, R_body, uv = self._state
+        model = self._cache["model"]
+        bi, ei = self.box_index, self.edge_index
         m = len(bi)
         J = np.zeros((m, N_PARAMS))
         # Pose: the edge-forming point's projection (analytic), through the bias transform.
         s = x[_BIAS][0]
         axis = np.array([0, 1, 0, 1])
         opposite = np.array([2, 3, 0, 1])
-        d_raw = np.zeros((len(raw), 4, 6))
         n = len(raw)
-        for edge in range(4):
-            pts = cam[np.arange(n), corner[:, edge]]
-            d_uv = _project_jacobian(
-                pts, _camera_points_jacobian(pts, R, x[:3]), self.camera, self.params.min_depth_m
-            )
-            d_raw[:, edge, :] = d_uv[:, axis[edge], :]
+        # The four edges' points in one call (element-wise arithmetic: the same values as one per edge).
+        pts = cam[np.arange(n)[:, None], corner].reshape(-1, 3)  # (n * 4, 3), box-major
+        d_uv = _project_jacobian(
+            pts, _camera_points_jacobian(pts, R, x[:3]), self.camera, self.params.min_depth_m
+        ).reshape(n, 4, 2, 6)
+        d_raw = d_uv[:, np.arange(4), axis, :]
         d_model = (1 + s / 2) * d_raw - (s / 2) * d_raw[:, opposite, :]
         J[:, _POSE] = d_model[bi, ei]
         # Time shift and template: forward differences of the raw boxes.
-        for j in range(_DELTA, _SHAPE.stop):
-            step = self.params.shape_step
-            xp = x.copy()
-            xp[j] += step
-            raw_p, _, _, _ = self.raw(xp)
-            J[:, j] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
+        step = self.params.shape_step
+        xp = x.copy()
+        xp[_DELTA] += step
+        raw_p, _, _, _ = self.raw(xp)
+        J[:, _DELTA] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
+        for j, raw_p in enumerate(self._shape_steps(x, poses, R_body, uv)):
+            J[:, _SHAPE.start + j] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
         # Bias: analytic.
         J[:, _BIAS.start] = ((raw - raw[:, opposite]) / 2.0)[bi, ei]
         J[:, _BIAS.start + 1 :] = _OFFSET_FROM_BIAS[ei]
-        prior_r = ((x - self.mean) * self.prior_weight)[self.has_prior]
-        prior_J = self.prior_jacobian
-        self._cache = {
-            "x": x.copy(),
-            "r": np.concatenate([residual / self.data_scale, prior_r]),
-            "J": np.vstack([J / self.data_scale[:, None], prior_J]),
-            "model": model,
-        }
+        self._cache["J"] = np.vstack([J / self.data_scale[:, None], self.prior_jacobian])
 
     def residuals(self, x: FloatArray) -> FloatArray:
         self._evaluate(x)
         return self._cache["r"]
 
     def jacobian(self, x: FloatArray) -> FloatArray:
-        self._evaluate(x)
+        self._evaluate_jacobian(x)
         return self._cache["J"]
 
     @property
@@ -499,6 +574,17 @@ def _assemble(
         edge_fraction=model.edge_fraction.copy(),
         rho=model.rho,
     )
+
+
+def _tight_boxes(uv: FloatArray) -> tuple[Boxes, IntArray]:
+    """Projected points (N, K, 2) -> their tight boxes (N, 4) x1, y1, x2, y2 and the index of the point
+    forming each edge (N, 4)."""
+    corner = np.column_stack(
+        [uv[:, :, 0].argmin(1), uv[:, :, 1].argmin(1), uv[:, :, 0].argmax(1), uv[:, :, 1].argmax(1)]
+    )
+    rows = np.arange(len(uv))[:, None]
+    axis = np.array([0, 1, 0, 1])
+    return uv[rows, corner, axis], corner
 
 
 def _lag_one_correlation(
@@ -586,7 +672,7 @@ def model_footprints(
     fit: ModelFit, tracks: Sequence[MatchedTrack], trajectory: Trajectory, vehicle: VehicleProfile
 ) -> FloatArray:
     """The fitted template's lowest rectangle at every box (N, 4, 3), local frame, at its time shift."""
-    sampler = PoseSampler(trajectory)
+    sampler = PoseSampler.of(trajectory)
     stamps = np.concatenate([t.stamps for t in tracks])
     poses = sampler.at(sampler.seconds(stamps) - fit.time_shift_s)
     return body_points_to_world(poses, fit.footprint_body_frame(vehicle), vehicle)
@@ -820,7 +906,7 @@ def _model_of(
 ) -> tuple[_Model, FloatArray]:
     """The model of a fit (its pose, shift, template and convention) on other boxes, and its parameter
     vector there (pose part zero: the model is built around the fit's pose)."""
-    sampler = PoseSampler(trajectory)
+    sampler = PoseSampler.of(trajectory)
     data = _data_of(tracks, sampler, camera, params)
     x = np.zeros(N_PARAMS)
     x[_DELTA], x[_SHAPE], x[_BIAS] = fit.time_shift_s, fit.shape, fit.bias

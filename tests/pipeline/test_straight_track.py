@@ -4,6 +4,7 @@ residuals, and the fit itself on exact boxes (the solver end to end is in test_h
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from pipeline.ground import GroundPlaneFit
 from pipeline.straight_track import (
     StraightTrackParams,
     _box_fit_linearised,
+    _box_fit_rotation,
     _box_residuals,
     _BoxData,
     _fit_box,
@@ -181,3 +183,25 @@ def test_box_fit_converges_to_the_exact_pose(
     assert fit.misfit < 1e-6
     # At the residual floor (1 % of the box diagonal), the 30-row track fixes every angle to a degree.
     assert 0.0 < fit.rotation_std_deg < 1.0
+
+
+def test_box_fit_rotation_is_level_rotations_to_the_last_bit_and_its_derivative_matches():
+    """The per-step rotation is `_level_rotations` written out in Python floats: the same values, and
+    dR/d(yaw, pitch, roll) its derivative (central differences)."""
+    rng = np.random.default_rng(7)
+    for tilt in (0.0, 0.03):
+        up = np.array([tilt, -0.5 * tilt, 1.0])
+        up /= np.linalg.norm(up)
+        family = SimpleNamespace(ground=SimpleNamespace(normal=up), basis=_level_basis(up))
+        for _ in range(20):
+            x = np.concatenate([rng.uniform(-math.pi, math.pi, 3), rng.normal(0.0, 10.0, 3)])
+            R, dR = _box_fit_rotation(x, family, derivatives=True)
+            expected = _level_rotations(x[None, 0], x[None, 1], up, x[None, 2], family.basis)[0]
+            np.testing.assert_array_equal(R, expected)
+            np.testing.assert_array_equal(_box_fit_rotation(x, family, derivatives=False)[0], R)
+            for k in range(3):
+                step = np.zeros(6)
+                step[k] = 1e-6
+                plus = _box_fit_rotation(x + step, family, derivatives=False)[0]
+                minus = _box_fit_rotation(x - step, family, derivatives=False)[0]
+                np.testing.assert_allclose(dR[k], (plus - minus) / 2e-6, atol=1e-8)

@@ -12,6 +12,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation as SciRotation
 
 from pipeline.arrays import FloatArray
+from pipeline.camera import rotation_from_ypr
 from pipeline.errors import ShapeError
 from pipeline.vehicle import (
     body_centres,
@@ -138,3 +139,28 @@ def test_shapes_are_checked() -> None:
     with pytest.raises(ShapeError, match="points_body"):
         body_points_to_world(np.zeros((2, 6)), np.zeros(3), profile)
     assert footprint_corners(np.zeros((0, 6)), profile).shape == (0, 4, 3)
+
+
+@pytest.mark.parametrize("count", [1, 7, 3000])
+@pytest.mark.parametrize("points", [1, 12, 20])
+def test_body_points_to_world_is_the_plain_contraction_to_the_last_bit(count: int, points: int) -> None:
+    """The fast contraction order gives exactly the sums of products of R (p - imu_offset) + position, as
+    the straightforward einsum does (the final fit's finite differences rely on repeatable placement)."""
+    rng = np.random.default_rng(count * 100 + points)
+    profile = VehicleProfile(length=4.6, width=1.8, height=1.5, imu_offset=(1.3, 0.9, 0.3))
+    poses = np.column_stack(
+        [
+            rng.normal(0.0, 300.0, (count, 3)),
+            rng.uniform(-math.pi, math.pi, count),
+            rng.normal(0.0, 0.1, (count, 2)),
+        ]
+    )
+    body = rng.uniform(-1.0, 5.0, (points, 3))
+    R = SciRotation.from_euler("ZYX", poses[:, 3:6]).as_matrix()
+    world = body_points_to_world(poses, body, profile)
+    assert world.flags.c_contiguous
+    expected = np.einsum("nij,kj->nki", R, body - np.array(profile.imu_offset)) + poses[:, None, :3]
+    np.testing.assert_allclose(world, expected, rtol=0, atol=1e-9)  # the placement itself
+    R_own = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
+    exact = np.einsum("nij,kj->nki", R_own, body - np.array(profile.imu_offset)) + poses[:, None, :3]
+    np.testing.assert_array_equal(world, exact)

@@ -296,3 +296,84 @@ def test_unbiased_boxes_inverts_the_detector_convention(scale, offsets, corner, 
     bias = np.array([scale, *offsets])
     biased = _Model.biased(box, bias)
     assert np.allclose(unbiased_boxes(biased, bias), box, atol=1e-6)
+
+
+def test_pose_sampler_interpolates_like_np_interp_per_column():
+    trajectory, _ = _scene()
+    sampler = PoseSampler(trajectory)
+    rng = np.random.default_rng(4)
+    t = np.concatenate(
+        [
+            rng.uniform(-5.0, sampler.times[-1] + 5.0, 500),  # inside and beyond both ends
+            sampler.times[::7],  # exactly at the poses' stamps, the first and
+            sampler.times[-1:],  # the last included
+            sampler.times[:-1] + 0.5 * np.diff(sampler.times),
+        ]
+    )
+    expected = np.column_stack([np.interp(t, sampler.times, sampler.poses[:, k]) for k in range(6)])
+    np.testing.assert_array_equal(sampler.at(t), expected)
+
+
+def test_pose_sampler_of_reuses_only_the_same_trajectory():
+    trajectory, _ = _scene()
+    sampler = PoseSampler.of(trajectory)
+    assert PoseSampler.of(trajectory) is sampler
+    shifted = Trajectory(stamps=trajectory.stamps, poses=trajectory.poses + np.array([1.0, 0, 0, 0, 0, 0]))
+    other = PoseSampler.of(shifted)
+    assert other is not sampler
+    np.testing.assert_array_equal(other.poses[:, 0], sampler.poses[:, 0] + 1.0)
+
+
+def _reference_jacobian(model: _Model, x: np.ndarray) -> np.ndarray:
+    """The time-shift and template columns (px) as one forward difference per parameter, each with the
+    whole model evaluated anew: what the batched columns must equal."""
+    raw, _, _, _ = model.raw(x)
+    base = model.biased(raw, x[_BIAS])[model.box_index, model.edge_index]
+    step = model.params.shape_step
+    columns = []
+    for j in range(_DELTA, _SHAPE.stop):
+        xp = x.copy()
+        xp[j] += step
+        raw_p, _, _, _ = model.raw(xp)
+        columns.append((model.biased(raw_p, x[_BIAS])[model.box_index, model.edge_index] - base) / step)
+    return np.column_stack(columns)
+
+
+@pytest.mark.parametrize("at_cuboid", [True, False])
+def test_batched_difference_columns_equal_one_evaluation_per_parameter(at_cuboid):
+    """At the cuboid (the start: wheel and body corners coincide, so a step switches the edge-forming
+    point) and at a general template, slightly off the true pose."""
+    trajectory, tracks = _scene()
+    sampler = PoseSampler(trajectory)
+    data = _data_from(tracks, sampler)
+    mean = np.zeros(N_PARAMS)
+    mean[_SHAPE] = cuboid_shape(VEHICLE)
+    model = _Model(
+        data, sampler, R_TRUE, C_TRUE, CAMERA, VEHICLE, ModelParams(), mean, ModelParams().prior_std()
+    )
+    x = mean.copy()
+    x[:6] = [0.002, -0.001, 0.003, 0.2, -0.1, 0.05]
+    if not at_cuboid:
+        x[_DELTA], x[_SHAPE], x[_BIAS] = SHIFT_TRUE_S, SHAPE_TRUE, BIAS_TRUE
+    residuals = model.residuals(x)
+    assert "J" not in model._cache  # residuals alone do not pay for the Jacobian
+    J = (
+        model.jacobian(x)
+        * np.concatenate([model.data_scale, np.ones(len(residuals) - model.data_rows)])[:, None]
+    )
+    reference = _reference_jacobian(model, x)
+    assert np.abs(reference).max() > 1.0  # the columns are not trivially zero
+    np.testing.assert_allclose(J[: model.data_rows, _DELTA : _SHAPE.stop], reference, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(model.residuals(x), residuals)
+
+
+def _data_from(tracks, sampler):
+    boxes = np.concatenate([t.boxes for t in tracks])
+    stamps = np.concatenate([t.stamps for t in tracks])
+    return _Data(
+        boxes,
+        sampler.seconds(stamps),
+        np.concatenate([np.full(len(t.boxes), t.track_id, dtype=np.int64) for t in tracks]),
+        stamps,
+        ~_clipped_edges(boxes, CAMERA, 1.0),
+    )
