@@ -106,10 +106,11 @@ class ModelParams:
     # The per-residual statistic divides a pose offset, a 6-dimensional signal, by the hundreds of residuals
     # of a drive-past: a drive-past seen from a camera moved 1 m scored 1.0 on it, and 37-11000 on this.
     holdout_pull_chi2: float = 30.0
-    # Moves below these never make traversals disagree (the first simulator's drifting poses moved the pose
-    # by 0.02 m / 0.06 deg between drive-pasts that agree).
-    min_disagreement_m: float = 0.1
-    min_disagreement_deg: float = 0.1
+    # Moves below these never make traversals disagree: the first simulator's drifting IMU poses move it by
+    # up to 0.08 m / 0.11 deg between drive-pasts that agree (rolled seed 0, ideal world: chi-square 57),
+    # and a move below the std an accepted result may have (0.5 / 3) does not matter.
+    min_disagreement_m: float = 0.15
+    min_disagreement_deg: float = 0.15
     shape_step: float = 1e-4  # finite-difference step of the shape parameters (m) and the time shift (s)
 
     def prior_std(self) -> FloatArray:
