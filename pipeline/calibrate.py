@@ -168,7 +168,8 @@ def calibrate(
     # 6 columns) and the worker threads only add hand-off cost; on a busy 2-core RSU a (4000, 6) SVD took
     # 84 ms with OpenBLAS's 2 threads against 1.4 ms with one. The previous limits are restored on return.
     with threadpool_limits(limits=1):
-        scanned = _calibrate(inputs, params, rng, progress, created_at_ns, map_fn, scan=True)
+        tracked = _Tracked()  # image tracks do not depend on the clock: every pass shares them
+        scanned = _calibrate(inputs, params, rng, progress, created_at_ns, map_fn, tracked, scan=True)
         notes: tuple[StageReport, ...] = ()
         if isinstance(scanned, ClockScan):
             # No two drive-pasts agreed on the assumed clock, but they do on another (pipeline.clock).
@@ -189,6 +190,7 @@ def calibrate(
                 progress,
                 created_at_ns,
                 map_fn,
+                tracked,
                 scan=False,
                 hypotheses=scanned.hypotheses,
             )
@@ -202,7 +204,14 @@ def calibrate(
         # offset estimated, the whole pipeline runs once more on the corrected clock (a search wrapped around
         # the fit); the estimate is then the prior.
         second = _calibrate(
-            replace(inputs, time_offset_ns=estimate), params, rng, progress, created_at_ns, map_fn, scan=False
+            replace(inputs, time_offset_ns=estimate),
+            params,
+            rng,
+            progress,
+            created_at_ns,
+            map_fn,
+            tracked,
+            scan=False,
         )
         assert not isinstance(second, ClockScan)
         said = (
@@ -229,6 +238,7 @@ def _calibrate(
     progress: ProgressCallback | None,
     created_at_ns: int,
     map_fn: MapFn,
+    tracked: _Tracked,
     scan: bool,
     hypotheses: Sequence[Hypothesis] | None = None,
 ) -> CalibrationOutcome | ClockScan:
@@ -260,8 +270,10 @@ def _calibrate(
     diagnostics = CalibrationDiagnostics(origin, trajectory)
 
     say("tracking", 0.1)
-    frames = frames_from_detections(inputs.detections)
-    track_set = track_boxes(frames, camera.width, camera.height, params.tracking)
+    if tracked.track_set is None:
+        tracked.frames = frames_from_detections(inputs.detections)
+        tracked.track_set = track_boxes(tracked.frames, camera.width, camera.height, params.tracking)
+    frames, track_set = tracked.frames, tracked.track_set
     report.append(_tracking_report(frames, track_set))
     matched = match_tracks(track_set.tracks, trajectory, association)
     report.append(_association_report(matched, track_set))
@@ -356,6 +368,15 @@ def _scan_clock(
         params.grouping,
         params.clock,
     )
+
+
+@dataclass(slots=True)
+class _Tracked:
+    """The image tracks of one calibrate() call, made by its first pass and shared by the reruns on another
+    clock (tracking stays in the image: the same boxes give the same tracks)."""
+
+    frames: list[FrameBoxes] = field(default_factory=list)
+    track_set: TrackSet | None = None
 
 
 def _tracking_report(frames: Sequence[FrameBoxes], track_set: TrackSet) -> StageReport:
