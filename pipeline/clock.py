@@ -8,14 +8,15 @@ different directions are displaced in different directions: at 150 ms and 12 m/s
 put their hypotheses 3.6 m apart, and grouping, which expects one camera, finds no two that agree.
 
 So when the assumed clock groups nothing, grouping is tried on trial clocks: for a trial shift s, each
-hypothesis is moved back by `v_i s` (v_i its track's least-squares velocity over its inliers), the tracks
-are paired with the poses on the shifted clock, and the similarity scores and clustering of grouping are
-applied unchanged. The shift whose largest group has the most members (then the highest overlap, then the
-smallest shift) is returned, and the caller runs every stage again on that clock, where the hypotheses are
-fitted to correctly paired boxes. Single-track hypotheses are coarse (1-3 m from body-shape misfit), so
-their agreement holds over a plateau of shifts 0.1-0.3 s wide: this only puts the early stages on a clock
-where drive-pasts can agree. The final fit estimates the offset itself (vehicle_model), with this as its
-prior, and the pipeline reruns once more when that estimate moves (calibrate).
+hypothesis is moved back by `v_i s` (v_i its track's least-squares velocity over its inliers), refitted by
+Levenberg-Marquardt on its rows re-paired with the poses on the shifted clock (free PnP solutions only),
+and the similarity scores and clustering of grouping are applied unchanged. The drive-pasts are those of the
+largest group found on the most trial clocks. They agree over a plateau of clocks 0.1-0.3 s wide (r_ov
+cannot see a camera displaced along the road by up to half a car length), so the clock is not the plateau's
+edge or centre but the trial, refined by a parabola, on which their corrected cameras lie closest together.
+The caller runs every stage again on that clock, starting from the hypotheses moved there. The final fit
+estimates the offset itself (vehicle_model), with this as its prior, and the pipeline reruns once more when
+that estimate moves (calibrate).
 """
 
 from __future__ import annotations
