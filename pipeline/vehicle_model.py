@@ -686,8 +686,10 @@ class TraversalCheck:
     traversals: clusters of tracks (a new one after a gap of more than `gap_s` without the vehicle's track);
     covariance (6, 6): the jackknife covariance of [w, C] over them (model error between drive-pasts
     included), None with fewer than 2 clusters; shift_m / angle_deg: the largest move of the pose when one
-    traversal is left out; disagreeing: reason text when some left-out fit moves beyond 3 of its own stds
-    (or cannot be fitted), else ''."""
+    traversal is left out; disagreeing: reason text, else '', when some left-out traversal cannot be fitted,
+    or its boxes are predicted by the others beyond their uncertainty and the noise (mean squared Mahalanobis
+    residual above `holdout_chi2_per_residual`) or pull their pose beyond `holdout_pull_chi2`, and leaving it
+    out moves the pose materially (see check_traversals)."""
 
     traversals: int
     covariance: FloatArray | None
