@@ -36,7 +36,7 @@ from pipeline.association import (
 )
 from pipeline.attitude import with_path_pitch
 from pipeline.camera import CameraModel
-from pipeline.clock import ClockParams, ClockScan, scan_clock
+from pipeline.clock import ClockParams, ClockScan, rematcher, scan_clock
 from pipeline.errors import DegenerateGeometry
 from pipeline.final_fit import FinalFit, final_fit
 from pipeline.ground import GroundPlaneFit, fit_ground_plane
@@ -169,7 +169,13 @@ def calibrate(
     # 84 ms with OpenBLAS's 2 threads against 1.4 ms with one. The previous limits are restored on return.
     with threadpool_limits(limits=1):
         tracked = _Tracked()  # image tracks do not depend on the clock: every pass shares them
-        scanned = _calibrate(inputs, params, rng, progress, created_at_ns, map_fn, tracked, scan=True)
+
+        def run(
+            on: CalibrationInputs, scan: bool = False, hypotheses: Sequence[Hypothesis] | None = None
+        ) -> CalibrationOutcome | ClockScan:
+            return _calibrate(on, params, rng, progress, created_at_ns, map_fn, tracked, scan, hypotheses)
+
+        scanned = run(inputs, scan=True)
         notes: tuple[StageReport, ...] = ()
         if isinstance(scanned, ClockScan):
             # No two drive-pasts agreed on the assumed clock, but they do on another (pipeline.clock).
@@ -183,18 +189,8 @@ def calibrate(
                      "again on that clock",),
                 ),
             )  # fmt: skip
-            scanned = _calibrate(
-                inputs,
-                params,
-                rng,
-                progress,
-                created_at_ns,
-                map_fn,
-                tracked,
-                scan=False,
-                hypotheses=scanned.hypotheses,
-            )
-        assert not isinstance(scanned, ClockScan)
+            scanned = run(inputs, hypotheses=scanned.hypotheses)
+        assert not isinstance(scanned, ClockScan)  # only a pass with `scan` returns one
         first = replace(scanned, stages=(*notes, *scanned.stages))
         estimate = first.result.time_offset_ns
         if estimate is None or abs(estimate - inputs.time_offset_ns) <= params.repeat_offset_ns:
@@ -203,16 +199,7 @@ def calibrate(
         # puts the vehicle 2 m from its boxes, which spoils hypotheses, grouping and extension. With the
         # offset estimated, the whole pipeline runs once more on the corrected clock (a search wrapped around
         # the fit); the estimate is then the prior.
-        second = _calibrate(
-            replace(inputs, time_offset_ns=estimate),
-            params,
-            rng,
-            progress,
-            created_at_ns,
-            map_fn,
-            tracked,
-            scan=False,
-        )
+        second = run(replace(inputs, time_offset_ns=estimate))
         assert not isinstance(second, ClockScan)
         said = (
             f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
@@ -352,16 +339,10 @@ def _scan_clock(
 ) -> ClockScan:
     """The clock scan (pipeline.clock): grouping on trial clocks, the tracks paired again with the poses on
     each."""
-
-    def rematch(shift_s: float) -> dict[int, MatchedTrack]:
-        trajectory = scene.trajectory
-        moved = Trajectory(trajectory.stamps + np.int64(round(shift_s * 1e9)), trajectory.poses)
-        return {m.track_id: m for m in match_tracks(track_set.tracks, moved, association)}
-
     return scan_clock(
         hypothesis_set.hypotheses,
         scene.tracks,
-        rematch,
+        rematcher(track_set.tracks, scene.trajectory, association),
         frames,
         scene.camera,
         scene.vehicle,

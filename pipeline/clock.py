@@ -30,11 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.arrays import FloatArray, IntArray
-from pipeline.association import MatchedTrack
+from pipeline.association import AssociationParams, MatchedTrack, Trajectory, match_tracks
 from pipeline.camera import CameraModel, rotation_from_rvec, rvec_from_rotation
 from pipeline.grouping import GroupingParams, group_hypotheses
 from pipeline.hypotheses import Hypothesis, HypothesisSet, lm_refine
-from pipeline.tracking import FrameBoxes
+from pipeline.tracking import FrameBoxes, ImageTrack
 from pipeline.vehicle import body_centres
 from schemas.common import VehicleProfile
 
@@ -94,6 +94,19 @@ def track_velocity(track: MatchedTrack, rows: IntArray | None = None) -> FloatAr
     return np.asarray(t @ (positions - positions.mean(axis=0)) / denominator, dtype=np.float64)
 
 
+def rematcher(
+    image_tracks: Sequence[ImageTrack], trajectory: Trajectory, association: AssociationParams
+) -> Rematch:
+    """The image tracks paired with the trajectory's poses on a clock shifted by s seconds (the trajectory's
+    stamps later by s: the assumed offset minus s)."""
+
+    def rematch(shift_s: float) -> dict[int, MatchedTrack]:
+        moved = Trajectory(trajectory.stamps + np.int64(round(shift_s * 1e9)), trajectory.poses)
+        return {m.track_id: m for m in match_tracks(image_tracks, moved, association)}
+
+    return rematch
+
+
 def shifted(hypothesis: Hypothesis, velocity: FloatArray, shift_s: float) -> Hypothesis:
     """The hypothesis with its camera moved back by `velocity * shift_s` (rotation kept)."""
     centre = hypothesis.camera_centre - velocity * shift_s
@@ -134,6 +147,15 @@ def scan_clock(
     velocity = {
         h.track_id: track_velocity(tracks_by_id[h.track_id], np.flatnonzero(h.inliers)) for h in hypotheses
     }
+
+    def moved_to(shift_s: float, tracks: Mapping[int, MatchedTrack]) -> tuple[Hypothesis, ...]:
+        # A track whose rows change with the clock (poses missing at an end) is left out on that clock.
+        return tuple(
+            refitted(shifted(h, velocity[h.track_id], shift_s), tracks[h.track_id], camera, vehicle)
+            for h in hypotheses
+            if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
+        )
+
     count = round(params.max_shift_s / params.step_s)
     shifts = params.step_s * np.arange(-count, count + 1)
     trials: list[tuple[float, tuple[int, ...], float]] = []  # shift, largest group, its mean overlap
@@ -141,12 +163,7 @@ def scan_clock(
     for shift in shifts:
         shift_s = float(shift)
         tracks = rematch(shift_s)
-        # A track whose rows change with the clock (poses missing at an end) is left out of this trial.
-        trial = tuple(
-            refitted(shifted(h, velocity[h.track_id], shift_s), tracks[h.track_id], camera, vehicle)
-            for h in hypotheses
-            if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
-        )
+        trial = moved_to(shift_s, tracks)
         centres.append({h.track_id: h.camera_centre for h in trial})
         result = group_hypotheses(HypothesisSet(trial, {}), tracks, frames, camera, vehicle, grouping)
         if result.groups:
@@ -181,10 +198,5 @@ def scan_clock(
         if curvature > 0.0:
             estimate += 0.5 * params.step_s * float(left - right) / float(curvature)
     overlap = max(o for _, i, o in trials if i == chosen)
-    tracks = rematch(estimate)
-    moved = tuple(
-        refitted(shifted(h, velocity[h.track_id], estimate), tracks[h.track_id], camera, vehicle)
-        for h in hypotheses
-        if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
-    )
+    moved = moved_to(estimate, rematch(estimate))
     return ClockScan(estimate, chosen, overlap, len(trials), len(shifts), params.max_shift_s, moved)

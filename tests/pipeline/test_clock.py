@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from pipeline.association import AssociationParams, MatchedTrack, Trajectory, match_tracks
 from pipeline.camera import CameraModel, camera_rotation_from_view, project_points
-from pipeline.clock import ClockParams, ClockScan, scan_clock, shifted, track_velocity
+from pipeline.clock import ClockParams, ClockScan, rematcher, scan_clock, shifted, track_velocity
 from pipeline.ground import GroundPlaneFit
 from pipeline.grouping import GroupingParams, GroupingResult, group_hypotheses
 from pipeline.hypotheses import Hypothesis, HypothesisParams, create_hypotheses
@@ -98,9 +98,7 @@ def scan(latency_s: float, laps: int = 2) -> tuple[GroupingResult, ClockScan]:
         matched, CAMERA, VEHICLE, GROUND, HypothesisParams(), np.random.default_rng(3), trajectory=trajectory
     )
 
-    def rematch(shift_s: float) -> dict[int, MatchedTrack]:
-        moved = Trajectory(trajectory.stamps + np.int64(round(shift_s * 1e9)), trajectory.poses)
-        return {m.track_id: m for m in match_tracks(tracks, moved, AssociationParams())}
+    rematch = rematcher(tracks, trajectory, AssociationParams())
 
     grouped = group_hypotheses(found, by_id, frames, CAMERA, VEHICLE, GroupingParams())
     clock = scan_clock(
