@@ -228,9 +228,14 @@ def test_bad_input_is_counted_and_good_traffic_carries_on(
             client.put(bad_key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         for message in good[11:]:
             publisher.put(message.payload)
+        # Detections and V2X arrive on different keys, whose callbacks Zenoh does not order against each
+        # other: wait for the last of each (CI once read the counters before the V2X rejection was counted).
         wait_until(
             lambda: (
-                (h := _health(client, config)) is not None and h.counters.get("detections.accepted") == 40
+                (h := _health(client, config)) is not None
+                and h.counters.get("detections.accepted") == 40
+                and "v2x.other_station" in h.counters
+                and "v2x.rejected.json" in h.counters
             ),
             timeout_s=10,
         )
