@@ -30,6 +30,7 @@ from pipeline.vehicle_model import (
     leave_one_out,
     model_box_error,
     model_footprints,
+    shape_model_covariance,
     unbiased_boxes,
 )
 
@@ -53,14 +54,17 @@ class FinalFit:
     # The clock's std from the fit with the shift free: a shift held at its prior (indistinguishable from
     # it) is known to this, not to the 1 ns the held fit carries.
     time_offset_std_s: float
+    # The part of `covariance` from the body shape the template cannot describe (consider parameters,
+    # vehicle_model.shape_model_covariance); zero where the boxes are the cuboid's.
+    shape_covariance: FloatArray
 
     @property
     def position_std_m(self) -> float:
-        return math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[3:, 3:])[-1]), 0.0))
+        return _largest_std_m(self.covariance)
 
     @property
     def rotation_std_deg(self) -> float:
-        return math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(self.covariance[:3, :3])[-1]), 0.0)))
+        return _largest_std_deg(self.covariance)
 
     def time_offset_ns(self, prior_ns: int) -> int:
         """Vehicle clock minus camera stamp: the prior minus the fitted shift."""
@@ -77,7 +81,9 @@ class FinalFit:
                 f"box error {100 * self.box_error_rel:.1f} %, fit std {self.fit.position_std_m:.3f} m / "
                 f"{self.fit.rotation_std_deg:.3f} deg, "
                 f"{self.check.traversals} traversals, leaving one out moves the pose up to "
-                f"{self.check.shift_m:.2f} m / {self.check.angle_deg:.2f} deg",
+                f"{self.check.shift_m:.2f} m / {self.check.angle_deg:.2f} deg, the body shape the "
+                f"template cannot describe adds {_largest_std_m(self.shape_covariance):.3f} m / "
+                f"{_largest_std_deg(self.shape_covariance):.3f} deg",
             ),
         )
 
@@ -118,6 +124,7 @@ def final_fit(
     # cuboid's (the first simulator's world, a detector trained on cuboid boxes) the extra freedom only
     # widens the covariance: the cuboid fit is kept when it explains the boxes as well within chance.
     model_params = model
+    templated = True
     # Likewise the clock: a shift within max(3 std, min_time_shift_s) of the prior is no evidence against
     # it, and left free it soaks up slow pose errors instead (the first simulator's drifting IMU poses
     # gave -6 ms +- 0.6 ms and twice the scatter between traversals); it is then held at the prior.
@@ -145,17 +152,26 @@ def final_fit(
         full_error = holdout_error(left_out, trajectory, camera, vehicle, model_params)
         cuboid_error = holdout_error(cuboid_left_out, trajectory, camera, vehicle, plain)
         if not full_error < template_gain * cuboid_error:
-            fit, model_params, left_out = cuboid, plain, cuboid_left_out
+            fit, model_params, left_out, templated = cuboid, plain, cuboid_left_out, False
     # The left-out fits of the chosen class serve the traversal check too.
     check = check_traversals(left_out, trajectory, camera, vehicle, model_params)
     boxes = unbiased_boxes(np.concatenate([t.boxes for t in used]), fit.bias)
     footprints = model_footprints(fit, used, trajectory, vehicle)
     summary = delta_p(boxes, footprints, fit.R_cam_from_local, fit.t_cam_from_local, camera).summary()
     value = summary.delta_p_mean_m
+    # The template is an approximation of a body whose silhouette the boxes show is not its cuboid: what it
+    # cannot describe is common to every view and every traversal (neither the sandwich nor the jackknife
+    # sees it), so it is added as consider covariance. Where cross-validation keeps the cuboid, the boxes
+    # are the cuboid's and there is no such part.
+    shape_covariance = (
+        shape_model_covariance(fit, used, trajectory, camera, vehicle, model_params)
+        if templated
+        else np.zeros((6, 6))
+    )
     return FinalFit(
         fit=fit,
         check=check,
-        covariance=combined_covariance(fit, check),
+        covariance=combined_covariance(fit, check) + shape_covariance,
         delta_p_mean_m=float("inf") if value is None else float(value),
         box_error_rel=model_box_error(fit, members, trajectory, camera, vehicle, model),
         traversals=count_traversals(
@@ -168,7 +184,16 @@ def final_fit(
         ),
         tracks=tuple(used),
         time_offset_std_s=time_offset_std_s,
+        shape_covariance=shape_covariance,
     )
+
+
+def _largest_std_m(covariance: FloatArray) -> float:
+    return math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), 0.0))
+
+
+def _largest_std_deg(covariance: FloatArray) -> float:
+    return math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0)))
 
 
 def _recognised(

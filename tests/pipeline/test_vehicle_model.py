@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import CameraModel, camera_rotation_from_view, rotation_angle_rad, rotation_from_rvec
 from pipeline.errors import DegenerateGeometry
-from pipeline.refinement import _clipped_edges
+from pipeline.refinement import _camera_points, _clipped_edges, _project
+from pipeline.vehicle import body_points_to_world
 from pipeline.vehicle_model import (
     _BIAS,
     _DELTA,
@@ -34,6 +35,8 @@ from pipeline.vehicle_model import (
     fit_trimmed,
     fit_vehicle_model,
     leave_one_out,
+    shape_model_covariance,
+    template_points,
     unbiased_boxes,
 )
 from schemas.common import CameraIntrinsics, VehicleProfile
@@ -377,3 +380,89 @@ def _data_from(tracks, sampler):
         stamps,
         ~_clipped_edges(boxes, CAMERA, 1.0),
     )
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The body the template cannot describe (shape_model_covariance): consider parameters.
+# ---------------------------------------------------------------------------------------------------------
+
+
+def _rounded_body(shape: np.ndarray, chamfer_m: float, mirror_m: float) -> np.ndarray:
+    """A body the 12-point template cannot describe: its points with the lower rectangle's corners cut by
+    `chamfer_m` along each side (a rounded bumper seen from above) and two mirrors standing `mirror_m` proud
+    of the sides at 60 % of the length, 0.6 of the height."""
+    points = template_points(shape, VEHICLE)
+    lower, rest = points[:4], points[4:]
+    L, W, H = VEHICLE.length, VEHICLE.width, VEHICLE.height
+    cut = []
+    for (x, y, z), (dx, dy) in zip(lower, [(1, 1), (-1, 1), (-1, -1), (1, -1)], strict=True):
+        cut += [(x + dx * chamfer_m, y, z), (x, y + dy * chamfer_m, z)]
+    mirrors = [(0.6 * L, -mirror_m, 0.6 * H), (0.6 * L, W + mirror_m, 0.6 * H)]
+    return np.vstack([np.array(cut), rest, np.array(mirrors)])
+
+
+def _body_scene(body: np.ndarray):
+    """The three drive-pasts of _scene, boxed from the point set `body` (no noise, no detector bias)."""
+    trajectory, template_tracks = _scene()
+    sampler = PoseSampler(trajectory)
+    tracks = []
+    for track in template_tracks:
+        poses = sampler.at(sampler.seconds(track.stamps) - SHIFT_TRUE_S)
+        world = body_points_to_world(poses, body, VEHICLE)
+        n, k = world.shape[:2]
+        uv = _project(_camera_points(world.reshape(-1, 3), R_TRUE, C_TRUE), CAMERA, 0.1).reshape(n, k, 2)
+        boxes = np.column_stack([uv[..., 0].min(1), uv[..., 1].min(1), uv[..., 0].max(1), uv[..., 1].max(1)])
+        tracks.append(MatchedTrack(track.track_id, track.stamps, boxes, track.poses))
+    return trajectory, tracks
+
+
+def _pose_error(fit) -> tuple[float, float]:
+    return (
+        float(np.linalg.norm(fit.camera_centre - C_TRUE)),
+        math.degrees(rotation_angle_rad(fit.R_cam_from_local, R_TRUE)),
+    )
+
+
+def _largest_stds(covariance: np.ndarray) -> tuple[float, float]:
+    return (
+        math.sqrt(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1])),
+        math.degrees(math.sqrt(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]))),
+    )
+
+
+def test_a_body_the_template_cannot_describe_is_covered_by_the_consider_covariance():
+    """Exact boxes of a body with rounded lower corners and mirrors: the template fits them to a few pixels
+    and its sandwich std says centimetres, but every view shares the misfit and the pose lands decimetres
+    off; the consider covariance of 0.1 m per template point covers that error, the sandwich does not."""
+    trajectory, tracks = _body_scene(_rounded_body(SHAPE_TRUE, chamfer_m=0.3, mirror_m=0.15))
+    R0, t0 = _start()
+    params = ModelParams()
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
+    error_m, error_deg = _pose_error(fit)
+    shape_cov = shape_model_covariance(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+    total_m, total_deg = _largest_stds(fit.covariance + shape_cov)
+    # The misfit moves the pose well beyond what the fit reports on its own...
+    assert error_m > 3 * fit.position_std_m or error_deg > 3 * fit.rotation_std_deg, (error_m, error_deg)
+    # ... and within 3 of the std with the body's uncertainty considered.
+    assert error_m <= 3 * total_m, (error_m, total_m)
+    assert error_deg <= 3 * total_deg, (error_deg, total_deg)
+
+
+def test_consider_covariance_is_zero_without_a_point_std_and_grows_with_its_square():
+    trajectory, tracks = _body_scene(_rounded_body(SHAPE_TRUE, chamfer_m=0.3, mirror_m=0.15))
+    R0, t0 = _start()
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+    covariances = {
+        std: shape_model_covariance(
+            fit, tracks, trajectory, CAMERA, VEHICLE, ModelParams(template_point_std_m=std)
+        )
+        for std in (0.0, 0.02, 0.04)
+    }
+    assert np.array_equal(covariances[0.0], np.zeros((6, 6)))
+    small, large = np.trace(covariances[0.02][3:, 3:]), np.trace(covariances[0.04][3:, 3:])
+    assert small > 0
+    # Linear response to a small displacement: four times the variance for twice the std (the secant of a
+    # tight box bends where another point becomes the extreme, hence the tolerance).
+    assert 3.2 < large / small < 4.8
+    assert np.allclose(covariances[0.04], covariances[0.04].T)
+    assert np.all(np.linalg.eigvalsh(covariances[0.04]) >= -1e-12)
