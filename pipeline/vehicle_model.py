@@ -613,9 +613,17 @@ def _lag_one_correlation(
 
 
 def _inverse(A: FloatArray) -> FloatArray:
-    values, vectors = np.linalg.eigh((A + A.T) / 2)
+    """Inverse of a symmetric positive semi-definite matrix, its eigenvalues floored at 1e-14 of the largest
+    after scaling to unit diagonal. Without the scaling the floor is relative to the stiffest parameter: a
+    parameter held by a 1e-9 prior (1e18 of information) floored every direction the data fix to less
+    than 1e4, and the pose's std read 0.01 (m, or m at the scene range) whatever the data said: a refused
+    single drive-past 150 m off reported 0.051 m / 0.007 deg."""
+    diagonal = np.diag(A)
+    d = np.sqrt(np.where(diagonal > 0.0, diagonal, 1.0))
+    scaled = A / np.outer(d, d)
+    values, vectors = np.linalg.eigh((scaled + scaled.T) / 2)
     values = np.maximum(values, max(float(values[-1]), 1e-300) * 1e-14)
-    return np.asarray((vectors / values) @ vectors.T, dtype=np.float64)
+    return np.asarray(((vectors / values) @ vectors.T) / np.outer(d, d), dtype=np.float64)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -814,9 +822,26 @@ def combined_covariance(fit: ModelFit, check: TraversalCheck) -> FloatArray:
     """The fit's covariance, raised in every direction where the traversals scatter more (jackknife)."""
     if check.covariance is None:
         return fit.covariance
-    difference = check.covariance - fit.covariance
-    values, vectors = np.linalg.eigh((difference + difference.T) / 2)
-    return np.asarray(fit.covariance + (vectors * np.maximum(values, 0.0)) @ vectors.T, dtype=np.float64)
+    return dominating_covariance(fit.covariance, check.covariance)
+
+
+def dominating_covariance(A: FloatArray, B: FloatArray) -> FloatArray:
+    """The covariance that is A raised in every direction where B is larger: in the coordinates where A is
+    the identity, B's eigenvalues below 1 are lifted to 1. That is unit-free: the positive part of B - A
+    taken directly mixes rad^2 with m^2 in the pose's [w, C], and lifted a rotation std of 0.03 deg (fit) /
+    0.09 deg (jackknife) to 0.38 deg through a position direction (sil-west seed 0, first simulator)."""
+    A = (A + A.T) / 2
+    B = (B + B.T) / 2
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        values, vectors = np.linalg.eigh(B - A)
+        return np.asarray(A + (vectors * np.maximum(values, 0.0)) @ vectors.T, dtype=np.float64)
+    L_inv = np.linalg.inv(L)
+    M = L_inv @ B @ L_inv.T
+    values, vectors = np.linalg.eigh((M + M.T) / 2)
+    lifted = (vectors * np.maximum(values, 1.0)) @ vectors.T
+    return np.asarray(L @ lifted @ L.T, dtype=np.float64)
 
 
 def _holdout_statistic(
