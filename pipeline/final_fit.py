@@ -14,7 +14,7 @@ from pipeline.arrays import FloatArray
 from pipeline.association import MatchedTrack, apart_in_time, track_spans
 from pipeline.errors import DegenerateGeometry
 from pipeline.metrics import delta_p
-from pipeline.selection import Candidate, Scene
+from pipeline.selection import Candidate, Scene, fits_as_well
 from pipeline.stage import StageReport
 from pipeline.validation import count_traversals
 from pipeline.vehicle_model import (
@@ -114,10 +114,8 @@ def final_fit(
             )
         except DegenerateGeometry:
             wider = None
-        if (
-            wider is not None
-            and model_box_error(wider, union, trajectory, camera, vehicle, model)
-            <= scene.selection.tie_ratio * error
+        if wider is not None and fits_as_well(
+            model_box_error(wider, union, trajectory, camera, vehicle, model), error, scene.selection
         ):
             fit, used, members = wider, wider_used, union
     # Does the vehicle need the template and the detector convention at all? Where the boxes are the

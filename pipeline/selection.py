@@ -46,6 +46,9 @@ class SelectionParams:
 
     # Two groups whose scale-free box errors are within this factor of each other are a tie ...
     tie_ratio: float = 1.25
+    # ... and so are errors both below this share of the box height (a fifth of a pixel on a 100 px box): on
+    # exact boxes errors of 1e-9 and 1e-8 differ by rounding alone, which the BLAS build decides.
+    tie_floor: float = 0.002
     # ... and a tie between poses further apart than this is an ambiguity: refuse.
     ambiguity_shift_m: float = 1.0
     ambiguity_angle_deg: float = 1.0
@@ -327,6 +330,12 @@ def refine_groups(
     return merged, StageReport("refinement", len(merged), len(groups) - len(merged), tuple(notes))
 
 
+def fits_as_well(error: float, reference: float, params: SelectionParams) -> bool:
+    """Is a scale-free box error a tie with (or better than) the reference: within tie_ratio of it, or both
+    below tie_floor?"""
+    return error <= params.tie_ratio * max(reference, params.tie_floor)
+
+
 def merge_agreeing(
     candidates: Sequence[Candidate], hypotheses: Mapping[int, Hypothesis], scene: Scene
 ) -> list[Candidate]:
@@ -352,7 +361,7 @@ def merge_agreeing(
         except DegenerateGeometry:
             result.extend(cluster)
             continue
-        if union.box_error_rel <= params.tie_ratio * cluster[0].box_error_rel and agree(
+        if fits_as_well(union.box_error_rel, cluster[0].box_error_rel, params) and agree(
             union, cluster[0], params
         ):
             result.append(union)
@@ -369,7 +378,7 @@ def rank(candidates: Sequence[Candidate], params: SelectionParams) -> tuple[Cand
     )
     best = ranked[0]
     for other in ranked[1:]:
-        if other.traversals < 2 or other.box_error_rel > params.tie_ratio * best.box_error_rel:
+        if other.traversals < 2 or not fits_as_well(other.box_error_rel, best.box_error_rel, params):
             continue
         shift, angle = _distance(other.whole_box, best.whole_box)
         if shift > params.ambiguity_shift_m or angle > params.ambiguity_angle_deg:
@@ -410,7 +419,7 @@ def extend(chosen: Candidate, scene: Scene) -> Candidate:
         candidate = finish_candidate(union, R, t, chosen.paper, ground, scene)
     except DegenerateGeometry:
         return chosen
-    if candidate.box_error_rel <= scene.selection.tie_ratio * chosen.box_error_rel and agree(
+    if fits_as_well(candidate.box_error_rel, chosen.box_error_rel, scene.selection) and agree(
         candidate, chosen, scene.selection
     ):
         return candidate

@@ -25,6 +25,7 @@ from pipeline.selection import (
     box_error,
     choose,
     extend,
+    fits_as_well,
     merge_agreeing,
     rank,
     refine_group,
@@ -215,7 +216,9 @@ def test_a_pair_that_fits_as_well_with_a_different_pose_is_reported_ambiguous(
     assert reason.startswith("ambiguous: tracks ")
     assert "2.00 m" in reason
     # Not ambiguous: a rival that fits clearly worse, one that agrees, one seen on a single traversal.
-    worse = replace(rival, box_error_rel=2.0 * params.tie_ratio * max(truth_candidate.box_error_rel, 1e-6))
+    worse = replace(
+        rival, box_error_rel=2.0 * params.tie_ratio * max(truth_candidate.box_error_rel, params.tie_floor)
+    )
     near = relocated(truth_candidate, moved(true_pose(), 0.5, 0.5), (7, 8))
     once = replace(rival, traversals=1)
     for other in (worse, near, once):
@@ -287,3 +290,13 @@ def test_regrouping_joins_single_track_poses_that_agree() -> None:
     assert report.notes == ("refined hypotheses agree: tracks [0, 1, 2]",)
     groups, report = regroup([hypotheses[0]], scene)
     assert groups == [] and report.notes == ("no two refined hypotheses agree either",)
+
+
+def test_box_errors_tie_within_the_ratio_or_both_below_the_floor() -> None:
+    params = SelectionParams(tie_ratio=1.25, tie_floor=0.002)
+    assert fits_as_well(0.05, 0.045, params)  # within 25 %
+    assert not fits_as_well(0.06, 0.045, params)
+    # Exact boxes: 1e-9 against 1e-10 is rounding, not a worse fit.
+    assert fits_as_well(1e-9, 1e-10, params)
+    assert fits_as_well(0.0025, 0.0, params)
+    assert not fits_as_well(0.003, 0.0, params)
