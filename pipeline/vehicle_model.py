@@ -119,6 +119,9 @@ class ModelParams:
     # residual statistic sees it (the fit absorbs it into the pose); it is propagated into the pose's
     # covariance as consider parameters (shape_model_covariance). 0 turns it off.
     template_point_std_m: float = 0.1
+    # The template and convention must predict the left-out traversals better than the cuboid by more than
+    # this (median |edge residual| px per traversal): below it both fit to within the detector's rounding.
+    template_floor_px: float = 0.2
 
     def prior_std(self) -> FloatArray:
         return np.array(

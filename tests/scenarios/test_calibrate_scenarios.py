@@ -49,11 +49,14 @@ def _assert_accepted(outcome: CalibrationOutcome) -> None:
     assert verdict.status == "accepted", verdict.reasons
 
 
-def test_carla_like_is_near_exact() -> None:
+@pytest.mark.parametrize("seed", [0, 1])
+def test_carla_like_is_near_exact(seed: int) -> None:
     # carla-like: noise-free boxes and poses, no distortion. What is left is the solver's tolerance and
     # float rounding (measured: below 1e-4 m, 1e-4 deg and 1e-4 m delta_p); the bounds are the and
-    # still catch any systematic error (a wrong convention costs decimetres or degrees).
-    _, outcome, evaluation = _run("carla-like", 0)
+    # still catch any systematic error (a wrong convention costs decimetres or degrees). Seed 1: the body
+    # template predicted the left-out drive-pasts better than the cuboid by rounding (0.0012 against 0.0016
+    # px), brought the uncertainty of a body the boxes do not show and was refused at 0.22 m / 1.2 deg std.
+    _, outcome, evaluation = _run("carla-like", seed)
     _assert_accepted(outcome)
     assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.05
     assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg < 0.05
