@@ -75,7 +75,11 @@ def track_pool(workers: int | None = None, chunksize: int = 8) -> Iterator[MapFn
     )
 
     def pool_map(fn: Callable[..., Any], *iterables: Iterable[Any]) -> Iterable[Any]:
-        return pool.map(fn, *iterables, chunksize=chunksize)
+        # Chunks of at most `chunksize` items, fewer when the items are few: the final fit's two model
+        # classes (or a short track list) still run on two workers, not as one chunk on one.
+        columns = [list(items) for items in iterables]
+        size = max(1, min(chunksize, min((len(c) for c in columns), default=0) // count))
+        return pool.map(fn, *columns, chunksize=size)
 
     try:
         yield pool_map

@@ -314,7 +314,9 @@ def _calibrate(
 
     say("final fit", 0.94)
     try:
-        final = final_fit(choice.chosen, scene, params.model, params.min_time_shift_s, params.template_gain)
+        final = final_fit(
+            choice.chosen, scene, params.model, params.min_time_shift_s, params.template_gain, map_fn
+        )
     except DegenerateGeometry as err:
         return refuse(f"final fit: {err}", origin)
     report.append(final.report(inputs.time_offset_ns))
