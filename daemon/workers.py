@@ -53,6 +53,12 @@ def _init_track_worker(parent_pid: int) -> None:
     threadpool_limits(limits=1)
 
 
+def chunk_size(items: int, workers: int, largest: int) -> int:
+    """Items per chunk a pool of `workers` hands out for `items` items: `largest`, fewer when that would
+    leave a worker without a chunk (at least 1)."""
+    return max(1, min(largest, items // max(workers, 1)))
+
+
 @contextmanager
 def track_pool(workers: int | None = None, chunksize: int = 8) -> Iterator[MapFn]:
     """A map function backed by `workers` processes (default: the machine's cores); plain map for 1.
@@ -75,7 +81,11 @@ def track_pool(workers: int | None = None, chunksize: int = 8) -> Iterator[MapFn
     )
 
     def pool_map(fn: Callable[..., Any], *iterables: Iterable[Any]) -> Iterable[Any]:
-        return pool.map(fn, *iterables, chunksize=chunksize)
+        # Chunks of at most `chunksize` items, fewer when the items are few: the final fit's two model
+        # classes (or a short track list) still run on two workers, not as one chunk on one.
+        columns = [list(items) for items in iterables]
+        items = min((len(column) for column in columns), default=0)
+        return pool.map(fn, *columns, chunksize=chunk_size(items, count, chunksize))
 
     try:
         yield pool_map

@@ -20,13 +20,13 @@ The pipeline reads no clock: the result's creation time is the caller's `created
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from pipeline.arrays import FloatArray
+from pipeline.arrays import FloatArray, Rotation, Vec3
 from pipeline.association import (
     AssociationParams,
     MatchedTrack,
@@ -36,12 +36,19 @@ from pipeline.association import (
 )
 from pipeline.attitude import with_path_pitch
 from pipeline.camera import CameraModel
-from pipeline.clock import ClockParams, ClockScan, rematcher, scan_clock
+from pipeline.clock import ClockParams, ClockScan, refitted, rematcher, scan_clock, shifted, track_velocity
 from pipeline.errors import DegenerateGeometry
 from pipeline.final_fit import FinalFit, final_fit
 from pipeline.ground import GroundPlaneFit, fit_ground_plane
 from pipeline.grouping import GroupingParams, GroupingResult, group_hypotheses
-from pipeline.hypotheses import Hypothesis, HypothesisParams, HypothesisSet, MapFn, create_hypotheses
+from pipeline.hypotheses import (
+    Hypothesis,
+    HypothesisParams,
+    HypothesisSet,
+    MapFn,
+    create_hypotheses,
+    shows_vehicle,
+)
 from pipeline.refinement import RefinementParams
 from pipeline.result import SOFTWARE_VERSION, calibration_result, refused_result
 from pipeline.selection import (
@@ -53,7 +60,7 @@ from pipeline.selection import (
     refine_groups,
     regroup,
 )
-from pipeline.stage import StageReport, count_reasons
+from pipeline.stage import Reason, StageReport, count_reasons
 from pipeline.tracking import FrameBoxes, TrackingParams, TrackSet, frames_from_detections, track_boxes
 from pipeline.validation import ValidationEvidence, validate
 from pipeline.vehicle import footprint_centres
@@ -114,6 +121,10 @@ class PipelineParams:
     # A first pass whose estimated time offset differs from the assumed one by more than this reruns every
     # stage on the corrected clock (30 ms: 0.3 m at 10 m/s, where hypotheses start to scatter).
     repeat_offset_ns: int = 30_000_000
+    # That rerun fits new hypotheses only for the tracks on which the first pass's pose shows the vehicle
+    # within this many box diagonals (+ 100 px) of a box (the rest keep the first pass's, moved to the new
+    # clock; calibrate._focused); None fits every track again.
+    focus_reach: float | None = 1.0
     clock: ClockParams = field(default_factory=ClockParams)
     # The template and detector convention replace the cuboid only when their cross-validated misfit is
     # below this share of the cuboid's (simpler wins ties).
@@ -171,9 +182,14 @@ def calibrate(
         tracked = _Tracked()  # image tracks do not depend on the clock: every pass shares them
 
         def run(
-            on: CalibrationInputs, scan: bool = False, hypotheses: Sequence[Hypothesis] | None = None
+            on: CalibrationInputs,
+            scan: bool = False,
+            hypotheses: Sequence[Hypothesis] | None = None,
+            focus: Candidate | None = None,
         ) -> CalibrationOutcome | ClockScan:
-            return _calibrate(on, params, rng, progress, created_at_ns, map_fn, tracked, scan, hypotheses)
+            return _calibrate(
+                on, params, rng, progress, created_at_ns, map_fn, tracked, scan, hypotheses, focus
+            )
 
         scanned = run(inputs, scan=True)
         notes: tuple[StageReport, ...] = ()
@@ -198,8 +214,9 @@ def calibrate(
         # The stages before the final fit paired boxes and poses on the assumed clock: a latency of 0.2 s
         # puts the vehicle 2 m from its boxes, which spoils hypotheses, grouping and extension. With the
         # offset estimated, the whole pipeline runs once more on the corrected clock (a search wrapped around
-        # the fit); the estimate is then the prior.
-        second = run(replace(inputs, time_offset_ns=estimate))
+        # the fit); the estimate is then the prior. Its hypotheses are fitted again only for the tracks during
+        # which the first pass's camera sees the vehicle (the others keep that pass's, moved to this clock).
+        second = run(replace(inputs, time_offset_ns=estimate), focus=first.chosen)
         assert not isinstance(second, ClockScan)
         said = (
             f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
@@ -228,11 +245,14 @@ def _calibrate(
     tracked: _Tracked,
     scan: bool,
     hypotheses: Sequence[Hypothesis] | None = None,
+    focus: Candidate | None = None,
 ) -> CalibrationOutcome | ClockScan:
     """One pass of every stage on the clock `inputs.time_offset_ns`, in order; each appends its report, a
     stage that leaves nothing to go on refuses. With `scan`, a pass whose grouping finds nothing searches
     other clocks and returns the best (pipeline.clock) for the caller to run again on; that run starts from
-    the scan's `hypotheses`, moved to the new clock, instead of fitting new ones."""
+    the scan's `hypotheses`, moved to the new clock, instead of fitting new ones. With `focus` (the previous
+    pass's chosen candidate), only the tracks during which its pose sees the vehicle get new hypotheses
+    (`_focused`)."""
     report: list[StageReport] = []
     say = progress or (lambda _stage, _fraction: None)
     camera = CameraModel.from_intrinsics(inputs.intrinsics)
@@ -273,9 +293,17 @@ def _calibrate(
         return refuse(f"ground plane: {err}", origin)
 
     say("hypotheses", 0.25)
+    kept = None
+    previous, reach = tracked.previous, params.focus_reach
+    if focus is not None and previous is not None and reach is not None and hypotheses is None:
+        pose = focus.whole_box
+        kept = _focused(
+            matched, pose.R_cam_from_local, pose.t_cam_from_local, previous, inputs, camera, reach
+        )
     hypothesis_set, said = _hypotheses(
-        matched, ground, trajectory, camera, inputs, params, rng, map_fn, hypotheses
+        matched, ground, trajectory, camera, inputs, params, rng, map_fn, hypotheses, kept
     )
+    tracked.previous = _Previous(inputs.time_offset_ns, {m.track_id: m for m in matched}, hypothesis_set)
     report.append(said)
     if not hypothesis_set.hypotheses:
         return refuse("no track gave a plausible camera pose (EPnP + RANSAC)", origin)
@@ -314,7 +342,9 @@ def _calibrate(
 
     say("final fit", 0.94)
     try:
-        final = final_fit(choice.chosen, scene, params.model, params.min_time_shift_s, params.template_gain)
+        final = final_fit(
+            choice.chosen, scene, params.model, params.min_time_shift_s, params.template_gain, map_fn
+        )
     except DegenerateGeometry as err:
         return refuse(f"final fit: {err}", origin)
     report.append(final.report(inputs.time_offset_ns))
@@ -358,6 +388,56 @@ class _Tracked:
 
     frames: list[FrameBoxes] = field(default_factory=list)
     track_set: TrackSet | None = None
+    previous: _Previous | None = None  # the latest pass's hypotheses, for a focused rerun (`_focused`)
+
+
+@dataclass(frozen=True, slots=True)
+class _Previous:
+    """A pass's clock (time_offset_ns), its matched tracks by id and its hypotheses."""
+
+    time_offset_ns: int
+    tracks: Mapping[int, MatchedTrack]
+    hypotheses: HypothesisSet
+
+
+def _focused(
+    matched: Sequence[MatchedTrack],
+    R: Rotation,
+    t: Vec3,
+    previous: _Previous,
+    inputs: CalibrationInputs,
+    camera: CameraModel,
+    reach: float,
+) -> dict[int, Hypothesis | Reason]:
+    """The outcomes a rerun on another clock keeps instead of fitting: track id -> the previous pass's
+    hypothesis moved to this clock (pipeline.clock.shifted + refitted), or a reason, for every track that
+    the previous pass's chosen pose (R, t: R_cam_from_local, t_cam_from_local) does not show the vehicle on
+    (pipeline.hypotheses.shows_vehicle, within `reach` box diagonals). On the vehicle's own tracks that
+    pose misses by about v * s / body diagonal box diagonals (v the speed, s the clock's correction: 0.2 at
+    0.1 s and 12 m/s); on another vehicle's rows it shows the calibration vehicle wherever that was. Such a
+    track cannot be the calibration vehicle unless that pose is far off; a hypothesis it had stays a
+    competitor in grouping. Tracks whose rows changed with the clock are fitted again.
+    """
+    shift_s = (previous.time_offset_ns - inputs.time_offset_ns) / 1e9
+    before = {h.track_id: h for h in previous.hypotheses.hypotheses}
+    kept: dict[int, Hypothesis | Reason] = {}
+    for track in matched:
+        old = previous.tracks.get(track.track_id)
+        if old is None or len(old.stamps) != len(track.stamps):
+            continue
+        if shows_vehicle(track, R, t, camera, inputs.vehicle, reach):
+            continue
+        hypothesis = before.get(track.track_id)
+        if hypothesis is None:
+            kept[track.track_id] = Reason(
+                "not_seen_before", "the previous pass's pose never shows the vehicle near this track's boxes"
+            )
+        else:
+            velocity = track_velocity(old, np.flatnonzero(hypothesis.inliers))
+            kept[track.track_id] = refitted(
+                shifted(hypothesis, velocity, shift_s), track, camera, inputs.vehicle
+            )
+    return kept
 
 
 def _tracking_report(frames: Sequence[FrameBoxes], track_set: TrackSet) -> StageReport:
@@ -392,6 +472,7 @@ def _hypotheses(
     rng: np.random.Generator,
     map_fn: MapFn,
     given: Sequence[Hypothesis] | None,
+    kept: Mapping[int, Hypothesis | Reason] | None = None,
 ) -> tuple[HypothesisSet, StageReport]:
     """One hypothesis per track (EPnP + RANSAC, the straight-track solver), or the `given` ones (the clock
     scan's, moved to this clock and refitted)."""
@@ -399,9 +480,25 @@ def _hypotheses(
         note = "the clock scan's hypotheses, moved to this clock and refitted"
         return HypothesisSet(tuple(given), {}), StageReport("hypotheses", len(given), 0, (note,))
     found = create_hypotheses(
-        matched, camera, inputs.vehicle, ground, params.hypotheses, rng, trajectory=trajectory, map_fn=map_fn
+        matched,
+        camera,
+        inputs.vehicle,
+        ground,
+        params.hypotheses,
+        rng,
+        trajectory=trajectory,
+        map_fn=map_fn,
+        kept=kept,
     )
-    return found, _hypotheses_report(found)
+    said = _hypotheses_report(found)
+    if kept:
+        moved = sum(isinstance(k, Hypothesis) for k in kept.values())
+        note = (
+            f"{len(matched) - len(kept)} tracks on which the previous pass's pose shows the vehicle fitted "
+            f"again; {len(kept)} others kept that pass's outcome ({moved} hypotheses moved to this clock)"
+        )
+        said = replace(said, notes=(note, *said.notes))
+    return found, said
 
 
 def _hypotheses_report(hypothesis_set: HypothesisSet) -> StageReport:

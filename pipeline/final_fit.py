@@ -5,19 +5,22 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from pipeline.arrays import FloatArray
-from pipeline.association import MatchedTrack, apart_in_time, track_spans
+from pipeline.association import MatchedTrack, Trajectory, apart_in_time, track_spans
+from pipeline.camera import CameraModel
 from pipeline.errors import DegenerateGeometry
 from pipeline.metrics import delta_p
 from pipeline.selection import Candidate, Scene, fits_as_well
 from pipeline.stage import StageReport
 from pipeline.validation import count_traversals
 from pipeline.vehicle_model import (
+    LeftOut,
     ModelFit,
     ModelParams,
     TraversalCheck,
@@ -33,6 +36,7 @@ from pipeline.vehicle_model import (
     shape_model_covariance,
     unbiased_boxes,
 )
+from schemas.common import VehicleProfile
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,12 +93,18 @@ class FinalFit:
 
 
 def final_fit(
-    chosen: Candidate, scene: Scene, model: ModelParams, min_time_shift_s: float, template_gain: float
+    chosen: Candidate,
+    scene: Scene,
+    model: ModelParams,
+    min_time_shift_s: float,
+    template_gain: float,
+    map_fn: Callable[..., Iterable[Any]] = map,
 ) -> FinalFit:
     """The joint fit from the chosen candidate's pose; `min_time_shift_s`: a fitted time shift smaller than
     this (and than 3 of its std) leaves the prior offset in place; `template_gain`: the template and detector
     convention replace the cuboid only when their cross-validated misfit is below this share of the
-    cuboid's."""
+    cuboid's. `map_fn` runs the two model classes' leave-one-out fits (independent; a process pool's map
+    runs them side by side with identical results)."""
     trajectory, camera, vehicle = scene.trajectory, scene.camera, scene.vehicle
     members = scene.members(chosen.track_ids)
     start = chosen.whole_box
@@ -144,9 +154,11 @@ def final_fit(
     # Chosen by cross-validation over the traversals: the template and detector convention are kept only
     # when they predict each left-out drive-past clearly better than the cuboid does (a chi-square test on
     # the residuals let them fit the first simulator's per-traversal pose drift and lose 0.1-0.3 m).
-    left_out = leave_one_out(fit, used, trajectory, camera, vehicle, model_params)
+    classes = [(fit, model_params)] + ([] if cuboid is None else [(cuboid, plain)])
+    left_outs = list(map_fn(_LeaveOneOut(used, trajectory, camera, vehicle), *zip(*classes, strict=True)))
+    left_out = left_outs[0]
     if cuboid is not None:
-        cuboid_left_out = leave_one_out(cuboid, used, trajectory, camera, vehicle, plain)
+        cuboid_left_out = left_outs[1]
         full_error = holdout_error(left_out, trajectory, camera, vehicle, model_params)
         cuboid_error = holdout_error(cuboid_left_out, trajectory, camera, vehicle, plain)
         # A cuboid that predicts the left-out boxes to within the floor leaves nothing for the template to
@@ -197,6 +209,19 @@ def _largest_std_m(covariance: FloatArray) -> float:
 
 def _largest_std_deg(covariance: FloatArray) -> float:
     return math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0)))
+
+
+@dataclass(frozen=True, slots=True)
+class _LeaveOneOut:
+    """vehicle_model.leave_one_out with the shared arguments bound (module level: a pool pickles it)."""
+
+    tracks: Sequence[MatchedTrack]
+    trajectory: Trajectory
+    camera: CameraModel
+    vehicle: VehicleProfile
+
+    def __call__(self, fit: ModelFit, params: ModelParams) -> LeftOut:
+        return leave_one_out(fit, self.tracks, self.trajectory, self.camera, self.vehicle, params)
 
 
 def _recognised(

@@ -146,6 +146,7 @@ def create_hypotheses(
     *,
     trajectory: Trajectory | None = None,
     map_fn: MapFn = map,
+    kept: Mapping[int, Hypothesis | Reason] | None = None,
 ) -> HypothesisSet:
     """One EPnP + RANSAC camera pose per matched track, filtered as in paper III-D.
 
@@ -156,19 +157,51 @@ def create_hypotheses(
     drawn from `rng`, so results depend on `rng` alone. Returns hypotheses in track order and a reason for
     every rejected track. Tracks are independent: `map_fn` (e.g. a process pool's map, supplied by the
     caller; the pipeline starts no workers itself) may fit them in parallel with identical results.
+    `kept`: track id -> an outcome known already (a rerun's, see pipeline.calibrate), taken instead of a fit;
+    every track's seed is drawn all the same, so the others' fits do not depend on which are kept.
     """
     path = _driven_path(_path_xy(tracks, trajectory))
     hypotheses: list[Hypothesis] = []
     rejected: dict[int, Reason] = {}
     # Seeds are drawn in track order up front, so each track's seed does not depend on others' outcome.
     seeds = [int(rng.integers(0, 2**31 - 1)) for _ in tracks]
+    kept = kept or {}
+    fitted = [(track, seed) for track, seed in zip(tracks, seeds, strict=True) if track.track_id not in kept]
     fit = _TrackFit(camera, vehicle, ground, path, params)
-    for track, outcome in zip(tracks, map_fn(fit, tracks, seeds), strict=True):
+    fits = iter(map_fn(fit, [t for t, _ in fitted], [seed for _, seed in fitted]) if fitted else ())
+    for track in tracks:
+        outcome = kept[track.track_id] if track.track_id in kept else next(fits)
         if isinstance(outcome, Reason):
             rejected[track.track_id] = outcome
         else:
             hypotheses.append(outcome)
     return HypothesisSet(hypotheses=tuple(hypotheses), rejected=rejected)
+
+
+# shows_vehicle's reach beyond its box diagonals: a far vehicle's box is a few px, its pose's error is not.
+_SHOWS_SLACK_PX = 100.0
+
+
+def shows_vehicle(
+    track: MatchedTrack,
+    R_cam_from_local: Rotation,
+    t_cam_from_local: Vec3,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    reach: float,
+) -> bool:
+    """Whether a camera pose shows the calibration vehicle near the track's boxes on any row: its body
+    centre (at the row's pose, local frame m) projected in front of the camera within `reach` box
+    diagonals + _SHOWS_SLACK_PX of the box centre (px). A track it shows on no row is not the calibration
+    vehicle's, unless the pose is off by more than that: an early rejection once a pose is known."""
+    pixels, depth = project_points(
+        body_centres(track.poses, vehicle), R_cam_from_local, t_cam_from_local, camera
+    )
+    boxes = track.boxes
+    centres = 0.5 * (boxes[:, :2] + boxes[:, 2:])
+    diagonals = np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1])
+    miss = np.hypot(pixels[:, 0] - centres[:, 0], pixels[:, 1] - centres[:, 1])
+    return bool(np.any((depth > 0.0) & (miss <= reach * diagonals + _SHOWS_SLACK_PX)))
 
 
 def _path_xy(tracks: Sequence[MatchedTrack], trajectory: Trajectory | None) -> FloatArray:

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from helpers import wait_until
 
-from daemon.workers import track_pool
+from daemon.workers import chunk_size, track_pool
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
@@ -75,6 +75,15 @@ def test_a_pool_maps_like_map_and_ends_with_its_block() -> None:
     assert not any(_alive(pid) for pid in pool_processes)
     with track_pool(1) as map_fn:
         assert map_fn is map  # no processes for one worker
+
+
+@pytest.mark.parametrize(
+    ("items", "workers", "expected"),
+    [(613, 2, 8), (16, 2, 8), (15, 2, 7), (2, 2, 1), (1, 2, 1), (0, 2, 1), (6, 1, 6)],
+)
+def test_chunks_shrink_so_few_items_still_reach_every_worker(items: int, workers: int, expected: int) -> None:
+    # The final fit maps its two model classes' leave-one-out fits: one chunk of two would run on one worker.
+    assert chunk_size(items, workers, 8) == expected
 
 
 @linux_only

@@ -19,7 +19,8 @@ from pipeline.camera import (
 )
 from pipeline.errors import ShapeError
 from pipeline.ground import GroundPlaneFit
-from pipeline.hypotheses import HypothesisParams, HypothesisSet, create_hypotheses
+from pipeline.hypotheses import HypothesisParams, HypothesisSet, create_hypotheses, shows_vehicle
+from pipeline.stage import Reason
 from pipeline.straight_track import StraightTrackParams
 from pipeline.tracking import ImageTrack
 from pipeline.vehicle import body_centres, body_corners
@@ -595,3 +596,56 @@ def test_distance_to_a_dense_trajectory_is_exact_to_centimetres(slack_m: float, 
     params = HypothesisParams(max_camera_distance_m=distance_m + slack_m)
     result = solve_one(track, camera, params, trajectory=trajectory)
     assert (result.rejected == {}) is accepted
+
+
+def test_kept_outcomes_are_taken_and_the_other_tracks_fit_as_without_them() -> None:
+    camera = make_camera()
+    R, t = true_pose()
+    exact = exact_track(curved_poses(), camera, R, t)
+    noise = np.random.default_rng(3).normal(0.0, 2.0, (2, len(exact.boxes), 1))
+    tracks = [MatchedTrack(i + 1, exact.stamps, exact.boxes + noise[i], exact.poses) for i in range(2)]
+    reason = Reason("not_seen_before", "kept")
+
+    def run(kept: dict[int, Reason] | None) -> HypothesisSet:
+        return create_hypotheses(
+            tracks, camera, VEHICLE, GROUND, HypothesisParams(), np.random.default_rng(11), kept=kept
+        )
+
+    plain, with_kept = run(None), run({1: reason})
+    assert [h.track_id for h in plain.hypotheses] == [1, 2]
+    assert with_kept.rejected == {1: reason}
+    # Seeds are drawn for every track, kept or not: track 2 fits exactly as it did.
+    (second,) = with_kept.hypotheses
+    np.testing.assert_array_equal(second.R_cam_from_local, plain.hypotheses[1].R_cam_from_local)
+    np.testing.assert_array_equal(second.t_cam_from_local, plain.hypotheses[1].t_cam_from_local)
+    np.testing.assert_array_equal(second.inliers, plain.hypotheses[1].inliers)
+
+
+@pytest.mark.parametrize("poses", [curved_poses(), straight_poses()], ids=["curved", "straight"])
+@pytest.mark.parametrize(
+    ("moved_m", "turned_deg"), [(0.0, 0.0), (3.0, 0.0), (0.0, 3.0), (2.0, -2.0)], ids=str
+)
+def test_the_vehicle_track_is_always_shown_by_a_pose_near_the_truth(
+    poses: np.ndarray, moved_m: float, turned_deg: float
+) -> None:
+    """Exact boxes of the vehicle: a pose off by a clock error's v * s (0.2 s at 15 m/s: 3 m along the road)
+    or a few degrees still shows the vehicle on them, so an early rejection never drops its track."""
+    camera = make_camera()
+    R, _ = true_pose()
+    track = exact_track(poses, camera, R, -R @ CAMERA_CENTRE)
+    R_off = camera_rotation_from_view(math.radians(95.0 + turned_deg), math.radians(18.0), 0.0)
+    centre = CAMERA_CENTRE + np.array([moved_m, 0.0, 0.0])
+    assert shows_vehicle(track, R_off, -R_off @ centre, camera, VEHICLE, reach=1.0)
+
+
+def test_another_vehicle_track_is_not_shown() -> None:
+    """Boxes where the calibration vehicle was not (another vehicle, seen while it drove elsewhere), and a
+    pose that puts the vehicle behind the camera, show nothing."""
+    camera = make_camera()
+    R, t = true_pose()
+    track = exact_track(curved_poses(), camera, R, t)
+    away = track.poses + np.array([80.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 80 m to the side
+    elsewhere = MatchedTrack(2, track.stamps, track.boxes, away)
+    assert not shows_vehicle(elsewhere, R, t, camera, VEHICLE, reach=1.0)
+    behind = camera_rotation_from_view(math.radians(95.0 + 180.0), math.radians(18.0), 0.0)
+    assert not shows_vehicle(track, behind, -behind @ CAMERA_CENTRE, camera, VEHICLE, reach=1.0)
