@@ -122,6 +122,11 @@ class ModelParams:
     # The template and convention must predict the left-out traversals better than the cuboid by more than
     # this (median |edge residual| px per traversal): below it both fit to within the detector's rounding.
     template_floor_px: float = 0.2
+    # The boxes show a body other than the cuboid when the template fit departs from it by more than this
+    # chi-square (6 dof, the shape parameters against their own covariance). Measured: 11-33 on the first
+    # simulator's cuboid boxes (its drifting IMU poses give more than the 6 expected), 196-1976 on shaped
+    # bodies (8 scenes); p = 1e-19 at 100.
+    cuboid_rejection_chi2: float = 100.0
 
     def prior_std(self) -> FloatArray:
         return np.array(
@@ -1045,6 +1050,17 @@ def shape_model_covariance(
     moves = -(changes * weights) @ Js @ A_inv / scale  # (3k, N_PARAMS): the fit's response
     pose_moves = moves[:, :6]
     return np.asarray(pose_moves.T @ pose_moves, dtype=np.float64)
+
+
+def cuboid_rejection(fit: ModelFit, vehicle: VehicleProfile) -> float:
+    """Chi-square (6 dof) of the fitted template's departure from the profile's cuboid, against the shape
+    parameters' own covariance (the marginal block of the full one): how strongly the boxes reject the
+    cuboid body. 0 for a fit whose shape was held at the cuboid."""
+    departure = fit.shape - cuboid_shape(vehicle)
+    block = fit.full_covariance[_SHAPE, _SHAPE]
+    if not np.all(np.isfinite(block)) or float(np.max(np.abs(departure))) == 0.0:
+        return 0.0
+    return max(float(departure @ _inverse(block) @ departure), 0.0)
 
 
 def cuboid_params(params: ModelParams) -> ModelParams:

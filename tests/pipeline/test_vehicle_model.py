@@ -31,6 +31,8 @@ from pipeline.vehicle_model import (
     _Model,
     _traversal_clusters,
     check_traversals,
+    cuboid_params,
+    cuboid_rejection,
     cuboid_shape,
     fit_trimmed,
     fit_vehicle_model,
@@ -466,3 +468,27 @@ def test_consider_covariance_is_zero_without_a_point_std_and_grows_with_its_squa
     assert 3.2 < large / small < 4.8
     assert np.allclose(covariances[0.04], covariances[0.04].T)
     assert np.all(np.linalg.eigvalsh(covariances[0.04]) >= -1e-12)
+
+
+def test_the_boxes_of_a_shaped_body_reject_the_cuboid_and_cuboid_boxes_do_not():
+    """cuboid_rejection: the template fit's departure from the cuboid against its own uncertainty. Boxes of
+    the cuboid itself (noisy, 1 px) stay near the 6 degrees of freedom; the template's shaped body (roof 1.2
+    m shorter, wheels in) is rejected far beyond the 100 at which the final fit adds the body's consider
+    covariance to a kept cuboid."""
+    trajectory, shaped = _scene(noise_px=1.0, seed=2, ar=0.8)
+    R0, t0 = _start(2)
+    shaped_fit = fit_vehicle_model(R0, t0, shaped, trajectory, CAMERA, VEHICLE, ModelParams())
+    assert cuboid_rejection(shaped_fit, VEHICLE) > 1000.0
+    x = np.zeros(N_PARAMS)
+    x[_DELTA], x[_SHAPE] = SHIFT_TRUE_S, cuboid_shape(VEHICLE)
+    rng = np.random.default_rng(2)
+    cuboid_tracks = [
+        MatchedTrack(
+            t.track_id, t.stamps, _boxes(trajectory, t.stamps, x) + rng.normal(0, 1.0, t.boxes.shape), t.poses
+        )
+        for t in shaped
+    ]
+    cuboid_fit = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+    assert cuboid_rejection(cuboid_fit, VEHICLE) < 30.0
+    held = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, cuboid_params(ModelParams()))
+    assert cuboid_rejection(held, VEHICLE) < 1e-6
