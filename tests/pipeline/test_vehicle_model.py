@@ -28,12 +28,14 @@ from pipeline.vehicle_model import (
     PoseSampler,
     _Data,
     _holdout_statistic,
+    _inverse,
     _Model,
     _traversal_clusters,
     check_traversals,
     cuboid_params,
     cuboid_rejection,
     cuboid_shape,
+    dominating_covariance,
     fit_trimmed,
     fit_vehicle_model,
     leave_one_out,
@@ -492,3 +494,35 @@ def test_the_boxes_of_a_shaped_body_reject_the_cuboid_and_cuboid_boxes_do_not():
     assert cuboid_rejection(cuboid_fit, VEHICLE) < 30.0
     held = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, cuboid_params(ModelParams()))
     assert cuboid_rejection(held, VEHICLE) < 1e-6
+
+
+def _random_covariance(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(6, 6)) * np.array([1e-3, 1e-3, 1e-3, 0.1, 0.1, 0.1])[:, None]  # rad and m rows
+    return M @ M.T + 1e-12 * np.eye(6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10**6), st.integers(0, 10**6), st.floats(1e-3, 1e3))
+def test_the_raised_covariance_dominates_both_in_any_units(seed_a: int, seed_b: int, unit: float):
+    """dominating_covariance(A, B) >= A and >= B (every direction), and changing the units of the rotation
+    (rad -> rad * unit) changes the result the same way, which the positive part of B - A did not."""
+    A, B = _random_covariance(seed_a), _random_covariance(seed_b + 7)
+    C = dominating_covariance(A, B)
+    for lower in (A, B):
+        gap = np.linalg.eigvalsh(C - lower)
+        assert gap[0] >= -1e-9 * np.abs(np.linalg.eigvalsh(C)).max()
+    D = np.diag([unit] * 3 + [1.0] * 3)
+    scaled = dominating_covariance(D @ A @ D, D @ B @ D)
+    np.testing.assert_allclose(scaled, D @ C @ D, rtol=1e-6, atol=1e-12 * np.abs(D @ C @ D).max())
+    # Where one already dominates, it is the answer.
+    np.testing.assert_allclose(dominating_covariance(A, 0.5 * A), A, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(dominating_covariance(0.5 * A, A), A, rtol=1e-9, atol=1e-15)
+
+
+def test_inverse_of_a_matrix_with_a_held_parameter_keeps_the_free_ones():
+    """A parameter held by a 1e-9 prior (1e18 of information) beside pose directions the data fix to 1e2:
+    the inverse gives those back (a floor relative to the largest eigenvalue gave 1e-4)."""
+    A = np.diag([1e2, 4e2, 9e2, 1e18])
+    A[0, 1] = A[1, 0] = 50.0
+    np.testing.assert_allclose(_inverse(A), np.linalg.inv(A), rtol=1e-9)
