@@ -13,7 +13,7 @@ import math
 import re
 import sys
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -27,7 +27,13 @@ from daemon.keys import v2x_key
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
-from pipeline.loaders import load_intrinsics, load_toolbox_detections, load_toolbox_poses, load_vehicle
+from pipeline.loaders import (
+    load_intrinsics,
+    load_toolbox_detection_table,
+    load_toolbox_pose_table,
+    load_vehicle,
+)
+from pipeline.tables import PoseTable
 from schemas.atomic import write_atomic
 from schemas.common import EPSG_PATTERN, IDENTIFIER, LOCAL_CRS, CameraIntrinsics, VehicleProfile
 from schemas.messages import VehiclePose
@@ -124,11 +130,11 @@ def load_offline_inputs(
     if camera_id is None:
         stem = "" if isinstance(camera_path, CameraIntrinsics) else Path(camera_path).stem
         camera_id = stem if IDENTIFIER.match(stem) else DEFAULT_CAMERA_ID
-    detections = load_toolbox_detections(Path(detections_path), camera_id)
-    poses = load_toolbox_poses(Path(poses_path))
+    detections = load_toolbox_detection_table(Path(detections_path), camera_id)
+    poses = load_toolbox_pose_table(Path(poses_path))
     if shift is not None:
         east, north = shift
-        poses = [pose.model_copy(update={"x": pose.x + east, "y": pose.y + north}) for pose in poses]
+        poses = poses.moved(east, north)
         notes.append(
             f"poses in a local frame placed at E {east} N {north} of {crs} (axes along grid east/north)"
         )
@@ -262,13 +268,24 @@ def _parsed_origin(text: str) -> tuple[float, float]:
 
 
 def _check_absolute_utm(path: Path, poses: Sequence[VehiclePose], placed: bool = False) -> None:
-    for pose in poses:
-        for name, value, (low, high) in (("x", pose.x, _UTM_EAST_RANGE_M), ("y", pose.y, _UTM_NORTH_RANGE_M)):
+    rows: Iterable[tuple[int, float, float]]
+    if isinstance(poses, PoseTable):
+        x, y = poses.values[:, 0], poses.values[:, 1]
+        is_inside = (x > _UTM_EAST_RANGE_M[0]) & (x < _UTM_EAST_RANGE_M[1])
+        is_inside &= (y > _UTM_NORTH_RANGE_M[0]) & (y < _UTM_NORTH_RANGE_M[1])
+        if is_inside.all():
+            return
+        first = int(np.argmin(is_inside))  # the first pose outside, reported as below
+        rows = [(int(poses.stamps[first]), float(x[first]), float(y[first]))]
+    else:
+        rows = ((pose.stamp_ns, pose.x, pose.y) for pose in poses)
+    for stamp_ns, east, north in rows:
+        for name, value, (low, high) in (("x", east, _UTM_EAST_RANGE_M), ("y", north, _UTM_NORTH_RANGE_M)):
             if not low < value < high:
                 where = " once placed at --origin" if placed else ""
                 raise InputError(
                     str(path),
-                    f"{pose.stamp_ns}.{name}: {value} is not a UTM coordinate{where} (expected {low:.0f} < "
+                    f"{stamp_ns}.{name}: {value} is not a UTM coordinate{where} (expected {low:.0f} < "
                     f"{name} < {high:.0f} m); for poses in a local metric frame use --frame local "
                     "(or --origin E,N --crs EPSG:N to place the frame)",
                 )

@@ -74,7 +74,7 @@ def make_trajectory(
     (absolute UTM -> local frame, m) and moves the stamps onto the camera clock: pose stamps are in the
     vehicle clock = camera clock + `params.time_offset_ns`. An empty input gives an empty trajectory.
     """
-    stamps_vehicle, local = poses_to_array(list(poses), origin)
+    stamps_vehicle, local = poses_to_array(poses, origin)
     # Stable sort so that among equal stamps the first in input order comes first and is the one kept.
     order = np.argsort(stamps_vehicle, kind="stable")
     stamps_vehicle, local = stamps_vehicle[order], local[order]

@@ -61,6 +61,7 @@ from pipeline.selection import (
     regroup,
 )
 from pipeline.stage import Reason, StageReport, count_reasons
+from pipeline.tables import PoseTable
 from pipeline.tracking import FrameBoxes, TrackingParams, TrackSet, frames_from_detections, track_boxes
 from pipeline.validation import ValidationEvidence, validate
 from pipeline.vehicle import footprint_centres
@@ -548,7 +549,7 @@ def _validation_report(verdict: Verdict) -> StageReport:
 
 def _local_origin(poses: Sequence[VehiclePose], crs: str) -> LocalOrigin:
     """Median of the reported positions, rounded to the metre (readable, and exact in float64)."""
-    xyz = np.array([[p.x, p.y, p.z] for p in poses])
+    xyz = poses.values[:, :3] if isinstance(poses, PoseTable) else np.array([[p.x, p.y, p.z] for p in poses])
     centre = np.round(np.median(xyz, axis=0))
     return LocalOrigin(crs=crs, x=float(centre[0]), y=float(centre[1]), z=float(centre[2]))
 

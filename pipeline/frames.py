@@ -19,6 +19,7 @@ from pyproj.exceptions import CRSError
 
 from pipeline.arrays import FloatArray, Points3, PoseArray, Stamps
 from pipeline.errors import InputError
+from pipeline.tables import PoseTable
 from schemas.common import LocalOrigin
 from schemas.messages import V2xPosition, VehiclePose
 
@@ -154,8 +155,15 @@ def local_points(points_utm: Points3, origin: LocalOrigin) -> Points3:
     return cast(Points3, np.asarray(points_utm, dtype=np.float64) - np.array([origin.x, origin.y, origin.z]))
 
 
-def poses_to_array(poses: list[VehiclePose], origin: LocalOrigin) -> tuple[Stamps, PoseArray]:
-    """VehiclePose list -> (stamps (N,) int64, PoseArray (N, 6) in the local frame)."""
+def poses_to_array(poses: Sequence[VehiclePose], origin: LocalOrigin) -> tuple[Stamps, PoseArray]:
+    """VehiclePose list (or PoseTable) -> (stamps (N,) int64, PoseArray (N, 6) in the local frame)."""
+    if isinstance(poses, PoseTable):
+        array = poses.values.copy()
+        # The same float64 subtraction as the per-pose expression below.
+        array[:, 0] -= origin.x
+        array[:, 1] -= origin.y
+        array[:, 2] -= origin.z
+        return poses.stamps.copy(), array
     stamps = np.array([p.stamp_ns for p in poses], dtype=np.int64)
     array = np.array(
         [[p.x - origin.x, p.y - origin.y, p.z - origin.z, p.yaw, p.pitch, p.roll] for p in poses],

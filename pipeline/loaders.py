@@ -16,12 +16,17 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from pipeline.arrays import FloatArray
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame
+from pipeline.tables import DetectionTable, PoseTable
 from schemas.common import (
+    IDENTIFIER,
+    MAX_CLASS_ID,
     STAMP_NS_MAX,
     STAMP_NS_MIN,
     CameraIntrinsics,
@@ -32,7 +37,7 @@ from schemas.common import (
 )
 from schemas.config import DaemonConfig
 from schemas.files import GroundTruth
-from schemas.messages import DetectionFrame, VehiclePose
+from schemas.messages import MAX_BOXES_PER_FRAME, DetectionFrame, VehiclePose
 from schemas.results import CalibrationResult
 
 if TYPE_CHECKING:
@@ -54,6 +59,8 @@ MAX_MODEL_VALUES = 100_000
 
 DETECTION_FIELDS = ("cx", "cy", "w", "h", "class_id")
 POSE_FIELDS = ("x", "y", "z", "yaw", "pitch", "roll")
+# schemas.common.PixelCoord's bound: a box corner beyond it fails the DetectionFrame's validation.
+_PIXEL_LIMIT = 1e5
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -372,9 +379,87 @@ def load_toolbox_detections(path: Path, camera_id: str = "camera") -> list[Detec
     `camera_id` is set on every frame. Frames come back sorted by stamp, boxes as x1, y1, x2, y2 with
     score 1.0 (the toolbox has none). A frame may hold no boxes.
     """
+    return list(load_toolbox_detection_table(path, camera_id))
+
+
+def load_toolbox_detection_table(path: Path, camera_id: str = "camera") -> DetectionTable:
+    """load_toolbox_detections' frames as columns (pipeline.tables), with the same errors."""
     path = Path(path)
+    entries = _sorted_stamps(path, _load_stamped_yaml(path))
+    table = _detection_columns(entries, camera_id)
+    if table is None:
+        # Something is wrong (or unusual): the row-by-row checks below find it and name it.
+        table = _table_of(_checked_detection_frames(path, entries, camera_id), camera_id)
+    return table
+
+
+def _table_of(frames: Sequence[DetectionFrame], camera_id: str) -> DetectionTable:
+    """Valid frames (of integer class ids, as the toolbox's are) as a DetectionTable."""
+    boxes = [(b.x1, b.y1, b.x2, b.y2) for frame in frames for b in frame.boxes]
+    classes = [b.cls for frame in frames for b in frame.boxes]
+    starts = np.zeros(len(frames) + 1, dtype=np.int64)
+    np.cumsum([len(frame.boxes) for frame in frames], out=starts[1:])
+    return DetectionTable(
+        camera_id,
+        np.array([frame.stamp_ns for frame in frames], dtype=np.int64),
+        starts,
+        np.array(boxes, dtype=np.float64).reshape(-1, 4),
+        np.array(classes, dtype=np.int64),
+    )
+
+
+def _detection_columns(entries: Sequence[tuple[int, Any, Any]], camera_id: str) -> DetectionTable | None:
+    """The frames of `entries` (stamp, key, rows) as a DetectionTable, every check of
+    _checked_detection_frames done on whole columns; None when any might fail (or the rows are not plain
+    lists of 5 numbers), for the row-by-row path to report."""
+    if IDENTIFIER.fullmatch(camera_id) is None:
+        return None
+    frames = [[] if rows is None else rows for _, _, rows in entries]
+    if not all(type(rows) is list and len(rows) <= MAX_BOXES_PER_FRAME for rows in frames):
+        return None
+    rows = list(itertools.chain.from_iterable(frames))
+    # Exact types only (bool is an int, and numpy would read "1.5" as a number): every row a list of 5
+    # floats or ints. Checked with C-level passes over the rows and values.
+    if not set(map(type, rows)) <= {list} or not set(map(len, rows)) <= {len(DETECTION_FIELDS)}:
+        return None
+    if not set(map(type, itertools.chain.from_iterable(rows))) <= {float, int}:
+        return None
+    try:
+        values = np.array(rows, dtype=np.float64).reshape(-1, len(DETECTION_FIELDS))
+    except OverflowError:  # an integer beyond float range
+        return None
+    if not np.isfinite(values).all():
+        return None
+    cx, cy, w, h, class_id = values.T
+    # The same arithmetic as the row-by-row path, elementwise in float64 (a sum beyond float range is inf
+    # there too, and fails the bounds below).
+    with np.errstate(over="ignore"):
+        half_w, half_h = 0.5 * w, 0.5 * h
+        boxes = np.stack([cx - half_w, cy - half_h, cx + half_w, cy + half_h], axis=1)
+    x1, y1, x2, y2 = boxes.T
+    is_valid = (
+        (w > 0.0).all()
+        and (h > 0.0).all()
+        and (np.trunc(class_id) == class_id).all()
+        and ((class_id >= 0.0) & (class_id <= MAX_CLASS_ID)).all()
+        and ((boxes >= -_PIXEL_LIMIT) & (boxes <= _PIXEL_LIMIT)).all()
+        and (x2 > x1).all()
+        and (y2 > y1).all()
+    )
+    if not is_valid:
+        return None
+    stamps = np.array([stamp for stamp, _, _ in entries], dtype=np.int64)
+    starts = np.zeros(len(frames) + 1, dtype=np.int64)
+    np.cumsum(list(map(len, frames)), out=starts[1:])
+    return DetectionTable(camera_id, stamps, starts, boxes, class_id.astype(np.int64))
+
+
+def _checked_detection_frames(
+    path: Path, entries: Sequence[tuple[int, Any, Any]], camera_id: str
+) -> list[DetectionFrame]:
+    """The frames built and validated one by one: the first problem raises InputError naming its field."""
     frames: list[DetectionFrame] = []
-    for stamp, key, rows in _sorted_stamps(path, _load_stamped_yaml(path)):
+    for stamp, key, rows in entries:
         if rows is None:
             rows = []  # `stamp:` with nothing under it: an empty frame
         if not isinstance(rows, list):
@@ -412,12 +497,34 @@ def load_toolbox_detections(path: Path, camera_id: str = "camera") -> list[Detec
 
 def load_toolbox_poses(path: Path) -> list[VehiclePose]:
     """poses.yaml `{stamp_ns: [x, y, z, yaw, pitch, roll]}` (absolute UTM m, rad) -> poses sorted by stamp."""
+    return list(load_toolbox_pose_table(path))
+
+
+def load_toolbox_pose_table(path: Path) -> PoseTable:
+    """load_toolbox_poses' poses as columns (pipeline.tables), with the same errors."""
     path = Path(path)
-    poses = []
-    for stamp, key, row in _sorted_stamps(path, _load_stamped_yaml(path)):
-        x, y, z, yaw, pitch, roll = _row(path, str(key), row, POSE_FIELDS)
-        poses.append(VehiclePose(stamp_ns=stamp, x=x, y=y, z=z, yaw=yaw, pitch=pitch, roll=roll))
-    return poses
+    entries = _sorted_stamps(path, _load_stamped_yaml(path))
+    stamps = np.array([stamp for stamp, _, _ in entries], dtype=np.int64)
+    rows = [row for _, _, row in entries]
+    values: FloatArray | None = None
+    # Exact types only, as in _detection_columns; then one finiteness test for the whole file.
+    if (
+        set(map(type, rows)) <= {list}
+        and set(map(len, rows)) <= {len(POSE_FIELDS)}
+        and set(map(type, itertools.chain.from_iterable(rows))) <= {float, int}
+    ):
+        try:
+            values = np.array(rows, dtype=np.float64).reshape(-1, len(POSE_FIELDS))
+        except OverflowError:  # an integer beyond float range
+            values = None
+        if values is not None and not np.isfinite(values).all():
+            values = None
+    if values is None:
+        # Row by row: the first bad row raises InputError naming its field.
+        values = np.array(
+            [_row(path, str(key), row, POSE_FIELDS) for _, key, row in entries], dtype=np.float64
+        ).reshape(-1, len(POSE_FIELDS))
+    return PoseTable(stamps, values)
 
 
 def load_calibration_result(path: Path) -> CalibrationResult:

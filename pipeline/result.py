@@ -14,6 +14,7 @@ from pipeline.camera import quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
 from pipeline.ground import GroundPlaneFit
 from pipeline.metrics import DeltaPSummary
+from pipeline.tables import DetectionTable
 from schemas.common import LOCAL_CRS, LocalOrigin
 from schemas.results import (
     SCHEMA_VERSION,
@@ -147,7 +148,11 @@ def _finite(value: float | None) -> float:
 
 
 def provenance(inputs: CalibrationInputs, params: PipelineParams) -> Provenance:
-    stamps = [f.stamp_ns for f in inputs.detections]
+    detections = inputs.detections
+    if isinstance(detections, DetectionTable):
+        stamps: list[int] = detections.stamps.tolist()
+    else:
+        stamps = [f.stamp_ns for f in detections]
     return Provenance(
         window_start_ns=min(stamps) if stamps else None,
         window_end_ns=max(stamps) if stamps else None,

@@ -16,6 +16,7 @@ from scipy.optimize import linear_sum_assignment
 
 from pipeline.arrays import Boxes, FloatArray, IntArray, Mask, Stamps, check_shape
 from pipeline.errors import InputError, ShapeError
+from pipeline.tables import DetectionTable
 from schemas.common import toolbox_class_id
 from schemas.messages import DetectionFrame
 
@@ -73,6 +74,8 @@ def frames_from_detections(frames: Sequence[DetectionFrame]) -> list[FrameBoxes]
     A frame whose stamp repeats an earlier one is dropped (the first received wins), so the result has
     strictly increasing stamps as `track_boxes` requires; in-order, unique input maps one to one.
     """
+    if isinstance(frames, DetectionTable):
+        return _frames_from_table(frames)
     order = sorted(range(len(frames)), key=lambda i: frames[i].stamp_ns)  # stable: first received first
     result: list[FrameBoxes] = []
     for index in order:
@@ -82,6 +85,19 @@ def frames_from_detections(frames: Sequence[DetectionFrame]) -> list[FrameBoxes]
         boxes = np.array([(b.x1, b.y1, b.x2, b.y2) for b in frame.boxes], dtype=np.float64).reshape(-1, 4)
         classes = np.array([toolbox_class_id(b.cls) for b in frame.boxes], dtype=np.int64)
         result.append(FrameBoxes(stamp_ns=frame.stamp_ns, boxes=boxes, classes=classes))
+    return result
+
+
+def _frames_from_table(table: DetectionTable) -> list[FrameBoxes]:
+    """frames_from_detections on a DetectionTable's columns (its class ids are toolbox ids already)."""
+    order = np.argsort(table.stamps, kind="stable")  # stable: first received first
+    result: list[FrameBoxes] = []
+    for index in order.tolist():
+        stamp_ns = int(table.stamps[index])
+        if result and result[-1].stamp_ns == stamp_ns:
+            continue
+        boxes, classes = table.frame_boxes(index)
+        result.append(FrameBoxes(stamp_ns=stamp_ns, boxes=boxes, classes=classes))
     return result
 
 

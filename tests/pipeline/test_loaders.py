@@ -14,11 +14,17 @@ from hypothesis import strategies as st
 
 from pipeline.errors import InputError
 from pipeline.loaders import (
+    _checked_detection_frames,
     _fast_parse_stamped_rows,
+    _load_stamped_yaml,
+    _row,
+    _sorted_stamps,
     load_calibration_result,
     load_ground_truth,
     load_intrinsics,
+    load_toolbox_detection_table,
     load_toolbox_detections,
+    load_toolbox_pose_table,
     load_toolbox_poses,
     load_vehicle,
 )
@@ -181,6 +187,30 @@ def test_block_style_toolbox_file_with_quoted_stamps(tmp_path: Path) -> None:
     assert [f.stamp_ns for f in frames] == [T0, T0 + 5, T0 + 10]
     assert frames[0].boxes == [] and frames[1].boxes == []
     assert frames[2].boxes == [Box(x1=100.0, y1=215.5, x2=120.0, y2=225.5, cls=5)]
+
+
+def test_tables_hold_exactly_what_the_row_by_row_checks_build(tmp_path: Path) -> None:
+    # The tables validate whole columns; their frames and poses are the objects the per-row path builds,
+    # bit for bit (ints for floats, a class as 5.0, an empty frame, centre +- half size in float64).
+    text = f"""{T0 + 10}: [[110, 220.5, 20, 10, 5.0], [961.3, 540.7, 0.1, 0.001, 4]]
+{T0}: []
+{T0 + 5}:
+{T0 + 7}: [[0.30000000000000004, 1.0000000000000002, 2.5, 1.25, 7]]
+"""
+    path = _write(tmp_path, "d.yaml", text)
+    table = load_toolbox_detection_table(path, "cam-7")
+    expected = _checked_detection_frames(path, _sorted_stamps(path, _load_stamped_yaml(path)), "cam-7")
+    assert list(table) == expected and len(table) == 4
+    assert [frame.boxes for frame in table] == [frame.boxes for frame in expected]
+    poses_text = f"""{T0 + 1}: [715674.0534, 5337055.972, 572, -3.141592653589793, 0.001, 0]
+{T0}: [1.0000000000000002, 2, 3, 4, 5, 6]
+"""
+    poses_path = _write(tmp_path, "p.yaml", poses_text)
+    poses = load_toolbox_pose_table(poses_path)
+    rows = [_row(poses_path, str(k), r, ("x", "y", "z", "yaw", "pitch", "roll"))
+            for _, k, r in _sorted_stamps(poses_path, _load_stamped_yaml(poses_path))]  # fmt: skip
+    assert [[p.x, p.y, p.z, p.yaw, p.pitch, p.roll] for p in poses] == rows
+    assert poses.stamps.tolist() == [T0, T0 + 1]
 
 
 def test_empty_mapping_is_no_frames(tmp_path: Path) -> None:
