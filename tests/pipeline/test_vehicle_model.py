@@ -288,8 +288,9 @@ def test_a_camera_moved_between_the_halves_is_caught(moved_m: float, turned_deg:
     assert check.shift_m >= 0.9 * moved_m and check.angle_deg >= 0.9 * turned_deg
 
 
-def test_five_consistent_drive_pasts_agree():
-    trajectory, tracks = _five_passes(0.0, 0.0, seed=1)
+@pytest.mark.parametrize("passes", [5, 6])
+def test_five_consistent_drive_pasts_agree(passes: int):
+    trajectory, tracks = _five_passes(0.0, 0.0, seed=1, passes=passes)
     params = ModelParams()
     R0, t0 = _start(2)
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
