@@ -293,20 +293,22 @@ class JobRunner:
             self._killed[seq] = ran_s
             stale = self._replace_pool_locked() if self._pool is job.pool else None
             waiting = [other.task for other in self._jobs.values() if other.pool is job.pool]
+        # Jobs no worker has taken yet cancel here and run in the new pool (see _settle). The kill comes
+        # before the log line: nothing the watchdog does after deciding may stand between it and the kill
+        # (a full suite once hung with this thread waiting on the logging module's lock, the worker alive).
+        for task in waiting:
+            task.cancel()
+        for child in descendant_pids(pid):
+            kill_pid(child)
+        kill_pid(pid)
         log.warning(
-            "job %s (camera %s) still running %.0f s after its %g s time limit: killing its worker (pid %d)",
+            "job %s (camera %s) still running %.0f s after its %g s time limit: killed its worker (pid %d)",
             job.spec.job_id,
             job.spec.camera_id,
             self.kill_grace_s,
             job.spec.timeout_s,
             pid,
         )
-        # Jobs no worker has taken yet cancel here and run in the new pool (see _settle).
-        for task in waiting:
-            task.cancel()
-        for child in descendant_pids(pid):
-            kill_pid(child)
-        kill_pid(pid)
         if stale is not None:
             self._stop_pool(stale, timeout_s=0.0)
 
@@ -322,7 +324,9 @@ class JobRunner:
         self._stop_pool(pool, timeout_s)
         with contextlib.suppress(OSError):
             self._started_writer.send(None)  # ends the watchdog
-        self._watchdog.join()
+        # Bounded: the sentinel wakes the watchdog at once, and a shutdown must not hang on it if something
+        # it called is stuck (it is a daemon thread: it cannot keep the process alive either).
+        self._watchdog.join(timeout=10.0)
         self._spawner.shutdown()
         self._started_reader.close()
         self._started_writer.close()
