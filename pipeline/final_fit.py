@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import contextlib
-import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -31,6 +30,7 @@ from pipeline.vehicle_model import (
     fit_trimmed,
     fit_vehicle_model,
     holdout_error,
+    largest_stds,
     leave_one_out,
     model_box_error,
     model_footprints,
@@ -65,17 +65,18 @@ class FinalFit:
 
     @property
     def position_std_m(self) -> float:
-        return _largest_std_m(self.covariance)
+        return largest_stds(self.covariance)[0]
 
     @property
     def rotation_std_deg(self) -> float:
-        return _largest_std_deg(self.covariance)
+        return largest_stds(self.covariance)[1]
 
     def time_offset_ns(self, prior_ns: int) -> int:
         """Vehicle clock minus camera stamp: the prior minus the fitted shift."""
         return int(prior_ns - round(self.fit.time_shift_s * 1e9))
 
     def report(self, prior_ns: int) -> StageReport:
+        body_m, body_deg = largest_stds(self.shape_covariance)
         return StageReport(
             "final fit",
             self.fit.used_residuals,
@@ -87,8 +88,7 @@ class FinalFit:
                 f"{self.fit.rotation_std_deg:.3f} deg, "
                 f"{self.check.traversals} traversals, leaving one out moves the pose up to "
                 f"{self.check.shift_m:.2f} m / {self.check.angle_deg:.2f} deg, the body shape the "
-                f"template cannot describe adds {_largest_std_m(self.shape_covariance):.3f} m / "
-                f"{_largest_std_deg(self.shape_covariance):.3f} deg",
+                f"template cannot describe adds {body_m:.3f} m / {body_deg:.3f} deg",
             ),
         )
 
@@ -206,14 +206,6 @@ def final_fit(
         time_offset_std_s=time_offset_std_s,
         shape_covariance=shape_covariance,
     )
-
-
-def _largest_std_m(covariance: FloatArray) -> float:
-    return math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), 0.0))
-
-
-def _largest_std_deg(covariance: FloatArray) -> float:
-    return math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0)))
 
 
 @dataclass(frozen=True, slots=True)

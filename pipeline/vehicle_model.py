@@ -287,8 +287,7 @@ def fit_vehicle_model(
     mean[_SHAPE] = cuboid_shape(vehicle)
     prior_std = params.prior_std()
     model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
-    centres = sampler.at(data.t_s)[:, :3]
-    scene_range = max(1.0, float(np.median(np.linalg.norm(centres - C0, axis=1))))
+    scene_range = _scene_range(model, C0)
     x_scale = np.concatenate([[1.0 / scene_range] * 3, [1.0] * 3, [0.05], [0.1] * 6, [0.01], [1.0] * 4])
     # Two passes: the data rows are weighted against the priors and each other by the residuals' effective
     # std (per edge and box size, times the square root of their correlation's variance inflation), which
@@ -519,17 +518,10 @@ def _assemble(
     params = model.params
     r_all, J_all = model.residuals(x), model.jacobian(x)
     m = model.data_rows
-    r, J = r_all[:m], J_all[:m]  # in units of the effective residual std (model.data_scale px)
-    J_prior = J_all[m:]
+    r = r_all[:m]  # in units of the effective residual std (model.data_scale px)
     weights = _robust_weights(r, params.loss, model.f_scale)  # type: ignore[arg-type]
     sigma = model.sigma_px
-    # Scene units for conditioning: rotation scaled by the scene range.
-    scale = np.ones(N_PARAMS)
-    scale[:3] = scene_range
-    Js = J / scale
-    Jp = J_prior / scale
-    prior_info = Jp.T @ Jp
-    A = Js.T @ (weights[:, None] * Js) + prior_info
+    Js, scale, A, prior_info = _normal_matrix(model, J_all, weights, scene_range)
     # Clusters: one track and cluster_s seconds.
     data = model.data
     bi = model.box_index
@@ -563,13 +555,14 @@ def _assemble(
     row_scale[model.box_index, model.edge_index] = model.data_scale
     stds = np.sqrt(np.maximum(np.diag(covariance_full), 0.0))
     finite = np.isfinite(residuals)
+    position_std_m, rotation_std_deg = largest_stds(pose_cov)
     return ModelFit(
         R_cam_from_local=R,
         t_cam_from_local=-R @ C,
         camera_centre=C,
         covariance=pose_cov,
-        position_std_m=math.sqrt(max(float(np.linalg.eigvalsh(pose_cov[3:, 3:])[-1]), 0.0)),
-        rotation_std_deg=math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(pose_cov[:3, :3])[-1]), 0.0))),
+        position_std_m=position_std_m,
+        rotation_std_deg=rotation_std_deg,
         time_shift_s=float(x[_DELTA]),
         time_shift_std_s=float(stds[_DELTA]),
         shape=x[_SHAPE].copy(),
@@ -590,6 +583,47 @@ def _assemble(
         edge_fraction=model.edge_fraction.copy(),
         rho=model.rho,
     )
+
+
+def _scene_range(model: _Model, C: Vec3) -> float:
+    """Median distance (m, at least 1) from the camera centre C to the vehicle at the model's boxes: the
+    scale that makes a rotation comparable with a position (conditioning of the normal matrix)."""
+    centres = model.sampler.at(model.data.t_s)[:, :3]
+    return max(1.0, float(np.median(np.linalg.norm(centres - C, axis=1))))
+
+
+def _normal_matrix(
+    model: _Model, J_all: FloatArray, weights: FloatArray, scene_range: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The weighted normal matrix of a model's Jacobian (data rows, then prior rows), in scene
+    units (rotation scaled by the scene range): (Js the data rows' Jacobian in those units, the scale per
+    parameter, A = Js^T W Js + prior information, the prior information)."""
+    m = model.data_rows
+    scale = np.ones(N_PARAMS)
+    scale[:3] = scene_range
+    Js = J_all[:m] / scale
+    Jp = J_all[m:] / scale
+    prior_info = Jp.T @ Jp
+    return Js, scale, Js.T @ (weights[:, None] * Js) + prior_info, prior_info
+
+
+def largest_stds(covariance: FloatArray) -> tuple[float, float]:
+    """(m, deg): the largest position and rotation std of a pose covariance (6, 6) [w, C]."""
+    position = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), 0.0))
+    rotation = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0))
+    return position, math.degrees(rotation)
+
+
+def _quick(params: ModelParams) -> ModelParams:
+    """The settings of the refits inside the checks (left-out traversals, halves): half the evaluations,
+    started from the full fit."""
+    return replace(params, max_evaluations=max(8, params.max_evaluations // 2))
+
+
+def _pose_difference(R_a: Rotation, C_a: Vec3, R_b: Rotation, C_b: Vec3) -> FloatArray:
+    """[w, C] (6,) of pose b relative to pose a, in the convention of ModelFit.covariance
+    (R_b = R_a expm(-[w]x))."""
+    return np.concatenate([-rvec_from_rotation(R_a.T @ R_b), C_b - C_a])
 
 
 def _tight_boxes(uv: FloatArray) -> tuple[Boxes, IntArray]:
@@ -747,7 +781,7 @@ def leave_one_out(
     clusters = tuple(tuple(c) for c in _traversal_clusters(tracks, gap_s))
     if len(clusters) < 2:
         return LeftOut(fit, clusters, ())
-    quick = replace(params, max_evaluations=max(8, params.max_evaluations // 2))
+    quick = _quick(params)
     fits: list[ModelFit | str] = []
     for index in range(len(clusters)):
         rest = [t for i, c in enumerate(clusters) if i != index for t in c]
@@ -780,10 +814,11 @@ def check_traversals(
         if isinstance(loo, str):
             problems.append(f"without traversal {index + 1}: {loo}")
             continue
-        # R = R_fit expm(-[w]x) (the convention of ModelFit.covariance)
-        w = -rvec_from_rotation(fit.R_cam_from_local.T @ loo.R_cam_from_local)
-        dC = loo.camera_centre - fit.camera_centre
-        deltas.append(np.concatenate([w, dC]))
+        delta = _pose_difference(
+            fit.R_cam_from_local, fit.camera_centre, loo.R_cam_from_local, loo.camera_centre
+        )
+        w, dC = delta[:3], delta[3:]
+        deltas.append(delta)
         shift, angle = float(np.linalg.norm(dC)), math.degrees(float(np.linalg.norm(w)))
         worst_shift, worst_angle = max(worst_shift, shift), max(worst_angle, angle)
         # Cross-validation: the left-out traversal's boxes as predicted by the others. Judged on the boxes,
@@ -849,7 +884,7 @@ def _halves_disagree(
     if len(clusters) < 6:
         return "", 0.0, 0.0
     middle = len(clusters) // 2
-    quick = replace(params, max_evaluations=max(8, params.max_evaluations // 2))
+    quick = _quick(params)
     halves = []
     for part in (clusters[:middle], clusters[middle:]):
         tracks = [t for c in part for t in c]
@@ -862,9 +897,10 @@ def _halves_disagree(
         except DegenerateGeometry:
             return "", 0.0, 0.0  # a half too weak to fit on its own says nothing about a move
     early, late = halves
-    w = -rvec_from_rotation(early.R_cam_from_local.T @ late.R_cam_from_local)
-    dC = late.camera_centre - early.camera_centre
-    difference = np.concatenate([w, dC])
+    difference = _pose_difference(
+        early.R_cam_from_local, early.camera_centre, late.R_cam_from_local, late.camera_centre
+    )
+    w, dC = difference[:3], difference[3:]
     chi2 = float(difference @ _inverse(early.covariance + late.covariance) @ difference)
     shift, angle = float(np.linalg.norm(dC)), math.degrees(float(np.linalg.norm(w)))
     if chi2 > params.holdout_pull_chi2 and (
@@ -1074,13 +1110,8 @@ def shape_model_covariance(
     r_all, J_all = model.residuals(x), model.jacobian(x)
     m = model.data_rows
     weights = _robust_weights(r_all[:m], params.loss, model.f_scale)  # type: ignore[arg-type]
-    centres = model.sampler.at(model.data.t_s)[:, :3]
-    scene_range = max(1.0, float(np.median(np.linalg.norm(centres - fit.camera_centre, axis=1))))
-    scale = np.ones(N_PARAMS)
-    scale[:3] = scene_range
-    Js = J_all[:m] / scale
-    Jp = J_all[m:] / scale
-    A_inv = _inverse(Js.T @ (weights[:, None] * Js) + Jp.T @ Jp)
+    Js, scale, A, _ = _normal_matrix(model, J_all, weights, _scene_range(model, fit.camera_centre))
+    A_inv = _inverse(A)
     # The boxes with each point displaced: the template's points placed and projected once, the displaced
     # copies (36) once more.
     points = template_points(x[_SHAPE], vehicle)
