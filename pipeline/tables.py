@@ -11,34 +11,54 @@ tracking and the result read the columns directly (`poses_to_array`, `frames_fro
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, overload
+from typing import Any, TypeVar, overload
 
 from pipeline.arrays import Boxes, FloatArray, IntArray, PoseArray, Stamps
 from schemas.messages import DetectionFrame, VehiclePose
 
+_Row = TypeVar("_Row")
 
-class PoseTable(Sequence[VehiclePose]):
-    """Vehicle poses sorted by stamp: stamps (N,) int64 ns, values (N, 6) x, y, z (m, absolute UTM or the
-    file's frame), yaw, pitch, roll (rad); every row already valid as a VehiclePose."""
 
-    __slots__ = ("stamps", "values")
+class _Table(Sequence[_Row]):
+    """A Sequence of schema objects over columns whose first is `stamps`: rows built on demand by `_row`
+    (index already in range, non-negative), slices as lists."""
 
-    def __init__(self, stamps: Stamps, values: PoseArray) -> None:
+    __slots__ = ("stamps",)
+
+    def __init__(self, stamps: Stamps) -> None:
         self.stamps = stamps
-        self.values = values
 
     def __len__(self) -> int:
         return len(self.stamps)
 
     @overload
-    def __getitem__(self, index: int) -> VehiclePose: ...
+    def __getitem__(self, index: int) -> _Row: ...
 
     @overload
-    def __getitem__(self, index: slice) -> list[VehiclePose]: ...
+    def __getitem__(self, index: slice) -> list[_Row]: ...
 
-    def __getitem__(self, index: int | slice) -> VehiclePose | list[VehiclePose]:
+    def __getitem__(self, index: int | slice) -> _Row | list[_Row]:
         if isinstance(index, slice):
-            return [self[i] for i in range(*index.indices(len(self)))]
+            return [self._row(i) for i in range(*index.indices(len(self)))]
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"row {index} of {len(self)}")
+        return self._row(index % len(self))
+
+    def _row(self, index: int) -> _Row:
+        raise NotImplementedError
+
+
+class PoseTable(_Table[VehiclePose]):
+    """Vehicle poses sorted by stamp: stamps (N,) int64 ns, values (N, 6) x, y, z (m, absolute UTM or the
+    file's frame), yaw, pitch, roll (rad); every row already valid as a VehiclePose."""
+
+    __slots__ = ("values",)
+
+    def __init__(self, stamps: Stamps, values: PoseArray) -> None:
+        super().__init__(stamps)
+        self.values = values
+
+    def _row(self, index: int) -> VehiclePose:
         x, y, z, yaw, pitch, roll = self.values[index].tolist()
         return VehiclePose(stamp_ns=int(self.stamps[index]), x=x, y=y, z=z, yaw=yaw, pitch=pitch, roll=roll)
 
@@ -50,35 +70,21 @@ class PoseTable(Sequence[VehiclePose]):
         return PoseTable(self.stamps, values)
 
 
-class DetectionTable(Sequence[DetectionFrame]):
+class DetectionTable(_Table[DetectionFrame]):
     """One camera's frames sorted by stamp: stamps (F,) int64 ns, starts (F + 1,) int64 (frame i's boxes are
     rows starts[i]:starts[i + 1]), boxes (B, 4) px x1, y1, x2, y2, classes (B,) int64 class ids (score 1.0);
     every frame already valid as a DetectionFrame."""
 
-    __slots__ = ("boxes", "camera_id", "classes", "stamps", "starts")
+    __slots__ = ("boxes", "camera_id", "classes", "starts")
 
     def __init__(self, camera_id: str, stamps: Stamps, starts: IntArray, boxes: Boxes, classes: IntArray):
+        super().__init__(stamps)
         self.camera_id = camera_id
-        self.stamps = stamps
         self.starts = starts
         self.boxes = boxes
         self.classes = classes
 
-    def __len__(self) -> int:
-        return len(self.stamps)
-
-    @overload
-    def __getitem__(self, index: int) -> DetectionFrame: ...
-
-    @overload
-    def __getitem__(self, index: slice) -> list[DetectionFrame]: ...
-
-    def __getitem__(self, index: int | slice) -> DetectionFrame | list[DetectionFrame]:
-        if isinstance(index, slice):
-            return [self[i] for i in range(*index.indices(len(self)))]
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame {index} of {len(self)}")
-        index %= len(self)
+    def _row(self, index: int) -> DetectionFrame:
         lo, hi = self.starts[index], self.starts[index + 1]
         rows: list[list[float]] = self.boxes[lo:hi].tolist()
         classes: list[int] = self.classes[lo:hi].tolist()
