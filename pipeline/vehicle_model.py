@@ -60,6 +60,7 @@ from schemas.common import VehicleProfile
 
 _POSE, _DELTA, _SHAPE, _BIAS = slice(0, 6), 6, slice(7, 13), slice(13, 18)
 N_PARAMS = 18
+_HELD = 1e-6  # prior std of a parameter held at its start
 SHAPE_NAMES = (
     "z_low_m",
     "wheel_overhang_m",
@@ -85,13 +86,18 @@ class ModelParams:
     max_evaluations: int = 100  # per pass (the weights of the second come from the first's residuals)
     time_shift_std_s: float = 0.5  # a configured or last estimated offset is a prior, not a requirement
     # Template: clearance and shoulder heights (m), roof span ends (m along the body) and roof inset (m).
-    shape_std: tuple[float, float, float, float, float, float] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4)
+    shape_std: tuple[float, ...] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4)
     scale_std: float = 0.1  # detector box scale about its centre
     # The detector's convention: boxes shifted as a whole (px) and grown or shrunk by a constant (px). A shift
-    # of every box by d px looks almost exactly like the camera turned by d / f rad, so the data hardly tell
-    # them apart: its prior is what the rotation can be known to (and enters the reported rotation std).
-    # Detectors are trained on boxes drawn symmetric about the object: the prior allows a 2 px shift.
+    # of every box by d px looks almost exactly like the camera turned by d / f rad: the data tell them apart
+    # only by second-order effects (perspective, distortion), and the template's misfit of a real body
+    # drives those. Fitted, the shift ran to 6-15 px on the exact boxes of simulated bodies and turned the
+    # camera 0.3-1 deg with it (true poses and clock; held at 0: 0.01-0.03 deg). So by default the shift is
+    # held at 0 and its std is what the rotation can be known to: consider covariance
+    # (consider_covariance), not a fitted parameter. Detectors are trained on boxes drawn symmetric about
+    # the object: 2 px.
     shift_std_px: float = 2.0
+    fit_shift: bool = False
     grow_std_px: float = 8.0
     cluster_s: float = 1.0  # residuals within this much time on one track count as one cluster
     pose_bias_std_m: float = 0.05  # common GNSS offset of all positions (no number of boxes averages it)
@@ -134,7 +140,7 @@ class ModelParams:
             + [self.time_shift_std_s]
             + list(self.shape_std)
             + [self.scale_std]
-            + [self.shift_std_px] * 2
+            + [self.shift_std_px if self.fit_shift else _HELD] * 2
             + [self.grow_std_px] * 2
         )
 
@@ -288,7 +294,9 @@ def fit_vehicle_model(
     prior_std = params.prior_std()
     model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
     scene_range = _scene_range(model, C0)
-    x_scale = np.concatenate([[1.0 / scene_range] * 3, [1.0] * 3, [0.05], [0.1] * 6, [0.01], [1.0] * 4])
+    x_scale = np.concatenate(
+        [[1.0 / scene_range] * 3, [1.0] * 3, [0.05], [0.1] * len(SHAPE_NAMES), [0.01], [1.0] * 4]
+    )
     # Two passes: the data rows are weighted against the priors and each other by the residuals' effective
     # std (per edge and box size, times the square root of their correlation's variance inflation), which
     # the first pass measures.
@@ -1083,25 +1091,28 @@ def model_box_error(
     return float(np.median(np.nanmax(residuals[rows], axis=1) / heights))
 
 
-def shape_model_covariance(
+def consider_covariance(
     fit: ModelFit,
     tracks: Sequence[MatchedTrack],
     trajectory: Trajectory,
     camera: CameraModel,
     vehicle: VehicleProfile,
     params: ModelParams,
+    point_std_m: float,
+    shift_std_px: float,
 ) -> FloatArray:
-    """Pose covariance (6, 6) [w, C] of the body shape the fitted template cannot describe.
+    """Pose covariance (6, 6) [w, C] of what the fit holds but the world may not (Schmidt's consider
+    parameters): the body shape the fitted template cannot describe, and the detector's shift of every box.
 
-    Schmidt's consider parameters: each template point, displaced by `params.template_point_std_m` along each
-    body axis in turn (36 displacements), changes the model boxes; the fit's own linear solution (pose, time
-    shift, template and convention together, so the nuisance parameters absorb what they can) maps each change
-    to a pose move, and the moves' outer products add up to the covariance. The displacements are not fitted:
-    the data cannot tell them from the pose (every view of the body shares them; fitted to the truth's own
-    tracks from the true pose, the template still lands 0.15-0.5 m / 0.1-0.45 deg off with a sandwich std of
-    0.07-0.1 m / 0.09-0.12 deg), so they widen the uncertainty instead. Zero when the std is 0."""
-    sigma = params.template_point_std_m
-    if sigma <= 0.0:
+    Each consider parameter, moved by its std, changes the model boxes; the fit's own linear solution (pose,
+    time shift, template and convention together, as `params` fitted them, so the fitted nuisance parameters
+    absorb what they can) maps each change to a pose move, and the moves' outer products add up to the
+    covariance. The parameters: each template point displaced by `point_std_m` along each body axis in turn
+    (36 displacements; the data cannot tell them from the pose: every view of the body shares them, and
+    fitted to the truth's own tracks from the true pose the template still landed 0.15-0.5 m / 0.1-0.45 deg
+    off with a sandwich std of 0.07-0.1 m / 0.09-0.12 deg), and every box shifted by `shift_std_px` in x,
+    then in y (ModelParams.fit_shift: held, never fitted, by default). Zero when both stds are 0."""
+    if point_std_m <= 0.0 and shift_std_px <= 0.0:
         return np.zeros((6, 6))
     model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
     if model.data_rows < 2 * N_PARAMS:
@@ -1112,14 +1123,31 @@ def shape_model_covariance(
     weights = _robust_weights(r_all[:m], params.loss, model.f_scale)  # type: ignore[arg-type]
     Js, scale, A, _ = _normal_matrix(model, J_all, weights, _scene_range(model, fit.camera_centre))
     A_inv = _inverse(A)
-    # The boxes with each point displaced: the template's points placed and projected once, the displaced
-    # copies (36) once more.
+    changes = [_OFFSET_FROM_BIAS[model.edge_index, :2].T * shift_std_px] if shift_std_px > 0.0 else []
+    if point_std_m > 0.0:
+        changes.append(_displaced_point_changes(model, x, vehicle, camera, params, point_std_m))
+    rows = np.vstack(changes) / model.data_scale  # (K, m) in row units
+    moves = -(rows * weights) @ Js @ A_inv / scale  # (K, N_PARAMS): the fit's response
+    pose_moves = moves[:, :6]
+    return np.asarray(pose_moves.T @ pose_moves, dtype=np.float64)
+
+
+def _displaced_point_changes(
+    model: _Model,
+    x: FloatArray,
+    vehicle: VehicleProfile,
+    camera: CameraModel,
+    params: ModelParams,
+    std_m: float,
+) -> FloatArray:
+    """The model boxes' change (3k, m) px, row by row, with each of the k template points displaced by std_m
+    along each body axis: the points placed and projected once, the displaced copies once more."""
     points = template_points(x[_SHAPE], vehicle)
     k = len(points)
     R, C = _pose_from_params(x[_POSE], model.R0, model.C0)
     poses = model.sampler.at(model.data.t_s - x[_DELTA])
     R_body = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
-    displaced = (points[:, None, :] + sigma * np.eye(3)[None, :, :]).reshape(-1, 3)  # point-major (3k, 3)
+    displaced = (points[:, None, :] + std_m * np.eye(3)[None, :, :]).reshape(-1, 3)  # point-major (3k, 3)
     world = rotated_body_points(R_body, poses, np.vstack([points, displaced]), vehicle)
     n = len(poses)
     uv = _project(_camera_points(world.reshape(-1, 3), R, C), camera, params.min_depth_m).reshape(n, 4 * k, 2)
@@ -1130,10 +1158,7 @@ def shape_model_covariance(
     raw, _ = _tight_boxes(np.vstack([base_uv[None], stepped]).reshape(-1, k, 2))
     boxes = np.stack([model.biased(b, x[_BIAS]) for b in raw.reshape(3 * k + 1, n, 4)])
     bi, ei = model.box_index, model.edge_index
-    changes = (boxes[1:, bi, ei] - boxes[0, bi, ei]) / model.data_scale  # (3k, m) in row units
-    moves = -(changes * weights) @ Js @ A_inv / scale  # (3k, N_PARAMS): the fit's response
-    pose_moves = moves[:, :6]
-    return np.asarray(pose_moves.T @ pose_moves, dtype=np.float64)
+    return np.asarray(boxes[1:, bi, ei] - boxes[0, bi, ei], dtype=np.float64)
 
 
 def cuboid_rejection(fit: ModelFit, vehicle: VehicleProfile) -> float:
@@ -1150,8 +1175,14 @@ def cuboid_rejection(fit: ModelFit, vehicle: VehicleProfile) -> float:
 def cuboid_params(params: ModelParams) -> ModelParams:
     """The same fit with the body held to the profile's cuboid and no detector convention: only pose and
     time shift free (the first simulator's world, and any detector that boxes the cuboid)."""
-    tiny = 1e-6
-    return replace(params, shape_std=(tiny,) * 6, scale_std=tiny, shift_std_px=tiny, grow_std_px=tiny)
+    return replace(
+        params,
+        shape_std=(_HELD,) * len(SHAPE_NAMES),
+        scale_std=_HELD,
+        shift_std_px=_HELD,
+        fit_shift=False,
+        grow_std_px=_HELD,
+    )
 
 
 def holdout_error(

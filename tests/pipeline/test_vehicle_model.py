@@ -32,6 +32,7 @@ from pipeline.vehicle_model import (
     _Model,
     _traversal_clusters,
     check_traversals,
+    consider_covariance,
     cuboid_params,
     cuboid_rejection,
     cuboid_shape,
@@ -39,7 +40,6 @@ from pipeline.vehicle_model import (
     fit_trimmed,
     fit_vehicle_model,
     leave_one_out,
-    shape_model_covariance,
     template_points,
     unbiased_boxes,
 )
@@ -141,6 +141,7 @@ def test_exact_boxes_give_back_pose_shift_shape_and_bias():
         shape_std=(100.0,) * 6,
         scale_std=100.0,
         shift_std_px=1e4,
+        fit_shift=True,
         grow_std_px=1e4,
     )
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, flat)
@@ -409,7 +410,8 @@ def _data_from(tracks, sampler):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# The body the template cannot describe (shape_model_covariance): consider parameters.
+# What the fit holds but the world may not (consider_covariance): the body the template cannot describe and
+# the detector's shift of every box.
 # ---------------------------------------------------------------------------------------------------------
 
 
@@ -465,7 +467,7 @@ def test_a_body_the_template_cannot_describe_is_covered_by_the_consider_covarian
     params = ModelParams()
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
     error_m, error_deg = _pose_error(fit)
-    shape_cov = shape_model_covariance(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+    shape_cov = consider_covariance(fit, tracks, trajectory, CAMERA, VEHICLE, params, 0.1, 0.0)
     total_m, total_deg = _largest_stds(fit.covariance + shape_cov)
     # The misfit moves the pose well beyond what the fit reports on its own...
     assert error_m > 3 * fit.position_std_m or error_deg > 3 * fit.rotation_std_deg, (error_m, error_deg)
@@ -479,9 +481,7 @@ def test_consider_covariance_is_zero_without_a_point_std_and_grows_with_its_squa
     R0, t0 = _start()
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
     covariances = {
-        std: shape_model_covariance(
-            fit, tracks, trajectory, CAMERA, VEHICLE, ModelParams(template_point_std_m=std)
-        )
+        std: consider_covariance(fit, tracks, trajectory, CAMERA, VEHICLE, ModelParams(), std, 0.0)
         for std in (0.0, 0.02, 0.04)
     }
     assert np.array_equal(covariances[0.0], np.zeros((6, 6)))
@@ -492,6 +492,34 @@ def test_consider_covariance_is_zero_without_a_point_std_and_grows_with_its_squa
     assert 3.2 < large / small < 4.8
     assert np.allclose(covariances[0.04], covariances[0.04].T)
     assert np.all(np.linalg.eigvalsh(covariances[0.04]) >= -1e-12)
+
+
+def test_a_shift_of_every_box_is_held_and_covered_by_its_consider_covariance():
+    """A detector that shifts every box by 3 px turns the camera by about 3 px / f: the fit holds the shift
+    at 0 (it cannot tell it from a turn, and a fitted shift follows the template's misfit instead), so the
+    turn is in the pose, and the shift's prior (2 px), as consider covariance, is a turn of about 2 px / f."""
+    trajectory, _ = _scene()
+    bias = np.array([-0.05, 0.0, 3.0, -3.0, 4.0])
+    tracks = []
+    for track in _scene()[1]:
+        x = np.zeros(N_PARAMS)
+        x[_DELTA], x[_SHAPE], x[_BIAS] = SHIFT_TRUE_S, SHAPE_TRUE, bias
+        boxes = _boxes(trajectory, track.stamps, x)
+        tracks.append(MatchedTrack(track.track_id, track.stamps, boxes, track.poses))
+    R0, t0 = _start()
+    params = ModelParams()
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
+    assert np.array_equal(fit.bias[1:3], [0.0, 0.0]) or np.max(np.abs(fit.bias[1:3])) < 1e-4
+    _, error_deg = _pose_error(fit)
+    turn_deg = math.degrees(3.0 / 1100.0)
+    assert 0.5 * turn_deg < error_deg < 1.5 * turn_deg, (error_deg, turn_deg)
+    shift_cov = consider_covariance(
+        fit, tracks, trajectory, CAMERA, VEHICLE, params, 0.0, params.shift_std_px
+    )
+    _, shift_deg = _largest_stds(shift_cov)
+    assert 0.5 < shift_deg / math.degrees(2.0 / 1100.0) < 1.5, shift_deg
+    _, total_deg = _largest_stds(fit.covariance + shift_cov)
+    assert error_deg <= 3 * total_deg, (error_deg, total_deg)
 
 
 def test_the_boxes_of_a_shaped_body_reject_the_cuboid_and_cuboid_boxes_do_not():

@@ -98,3 +98,28 @@ def test_the_reported_uncertainty_covers_a_body_the_template_cannot_describe(
     outcome, evaluation, _ = _run(preset, seed, camera_index)
     _assert_right_or_refused(outcome, evaluation)
     assert outcome.result.uncertainty is not None  # a pose was reached: the covering is what is tested
+
+
+def test_boxes_that_reject_the_cuboid_body_are_fitted_with_the_template() -> None:
+    # van seed 0: cross-validation over its drive-pasts preferred the cuboid, whose pose was 0.51 m / 0.29
+    # deg off (session 6); the boxes reject the cuboid body far beyond chance (the template fit's departure
+    # from it), so the cuboid is no candidate and the pose is the template's (measured 0.27 m / 0.13 deg).
+    outcome, evaluation, _ = _run("van", 0, 0)
+    notes = _stage_notes(outcome, "final fit")
+    assert "body the template: the boxes reject the cuboid body" in notes, notes
+    _assert_right_or_refused(outcome, evaluation)
+
+
+def test_cuboid_boxes_keep_the_cuboid() -> None:
+    # The first simulator's world draws the boxes from the cuboid: nothing rejects it, and cross-validation
+    # keeps it (the template would only widen the uncertainty).
+    sim = simulate("sil-south", seed=0, ideal=True)
+    camera = sim.cameras[0]
+    outcome = calibrate(
+        calibration_inputs(sim, camera.camera_id),
+        PipelineParams(),
+        np.random.default_rng(0),
+        created_at_ns=1_700_000_000_000_000_000,
+    )
+    notes = _stage_notes(outcome, "final fit")
+    assert "body the cuboid" in notes, notes
