@@ -16,6 +16,7 @@ it, the 25.8 s the toolbox took on a 16-minute 50 Hz track with 12k boxes; peak 
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import shlex
@@ -110,6 +111,7 @@ def instrumented_main(pair_dir: Path) -> int:
     from daemon.workers import track_pool
     from pipeline.calibrate import PipelineParams, calibrate
 
+    gc.freeze()  # as `rsucal calibrate` does after its imports
     t1 = time.perf_counter()
     loaded = load_offline_inputs(
         pair_dir / "camera.yaml",

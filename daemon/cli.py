@@ -6,6 +6,7 @@ Exit codes: 0 success, 2 bad input (the message names file and field), 3 calibra
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import math
@@ -238,6 +239,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from daemon.workers import track_pool
     from pipeline.calibrate import PipelineParams, calibrate
 
+    # The modules just imported are hundreds of thousands of objects that live as long as the command; moved
+    # out of the collector's generations, they are not traversed again by every full collection (loading
+    # and calibrating the `long` toolbox pair runs ~210 collections: 0.09 s of GC in this process, 0.015 s
+    # with them frozen). The forked track workers inherit the frozen set. Results are unchanged.
+    gc.freeze()
     out = _output_file("--out", args.out)
     loaded = load_offline_inputs(
         Path(args.camera),

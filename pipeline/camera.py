@@ -44,13 +44,18 @@ class CameraModel:
 
 def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
     """Apply the OpenCV radial-tangential model to normalised coordinates (N, 2) -> (N, 2)."""
+    return np.stack(distort_xy(xy[:, 0], xy[:, 1], dist), axis=1)
+
+
+def distort_xy(x: FloatArray, y: FloatArray, dist: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """`distort_normalized` on the normalised coordinates as two arrays x, y (same shape) -> (xd, yd), for
+    callers that use the columns apart (the straight-track solver's inner loop)."""
     k1, k2, p1, p2, k3 = dist
-    x, y = xy[:, 0], xy[:, 1]
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return np.stack([xd, yd], axis=1)
+    return xd, yd
 
 
 def project_points_cam(points_cam: Points3, camera: CameraModel) -> Pixels:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Points3, PoseArray, Rotation, Vec3
-from pipeline.camera import CameraModel, distort_normalized, rotation_angle_rad, rotation_from_rvec
+from pipeline.camera import CameraModel, distort_xy, rotation_angle_rad, rotation_from_rvec
 from pipeline.ground import GroundPlaneFit
 from pipeline.vehicle import body_corners
 from schemas.common import VehicleProfile
@@ -142,10 +142,14 @@ class _BoxData:
     kept_is_u: BoolArray = field(init=False, repr=False, compare=False)
     kept_scale: FloatArray = field(init=False, repr=False, compare=False)
     kept_first_corner: IntArray = field(init=False, repr=False, compare=False)
+    # Where each box's 4 edge values sit in the flattened (M, 16) [u | v] of its corners: the row's first
+    # column (16 per row) plus `_UV_COLUMN`; (M, 4). A box's extreme corner index (0-7) is added to it.
+    uv_edge_base: IntArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         rows = len(self.boxes)
         keep = ~self.on_border
+        object.__setattr__(self, "uv_edge_base", 16 * np.arange(rows)[:, None] + _UV_COLUMN)
         object.__setattr__(self, "keep", keep)
         object.__setattr__(self, "kept_is_u", np.broadcast_to(_IS_U_EDGE, (rows, 4))[keep])
         object.__setattr__(self, "kept_scale", np.broadcast_to(self.scale, (rows, 4))[keep])
@@ -548,15 +552,18 @@ class _BoxFitPoint:
             edges = len(data.kept_scale)
             empty = np.zeros(0, dtype=np.int64)
             return _BoxFitPoint(x, np.full(edges, 1e3), False, empty, np.zeros(0, dtype=bool), np.zeros(0))
-        xy = points_cam[:, :2] / depth[:, None]
+        xn, yn = points_cam[:, 0] / depth, points_cam[:, 1] / depth
         if camera.has_distortion:
-            xy = distort_normalized(xy, camera.dist)
+            xn, yn = distort_xy(xn, yn, camera.dist)
         K = camera.K
         rows = len(data.boxes)
-        u = (K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]).reshape(rows, 8)
-        v = (K[1, 1] * xy[:, 1] + K[1, 2]).reshape(rows, 8)
-        extremes = np.column_stack([u.argmin(axis=1), v.argmin(axis=1), u.argmax(axis=1), v.argmax(axis=1)])
-        model = np.take_along_axis(np.concatenate([u, v], axis=1), extremes + _UV_COLUMN, axis=1)
+        # [u | v] of each box's 8 corners, (M, 16); the extreme corner of each edge picked by flat index.
+        uv = np.empty((rows, 16))
+        uv[:, :8] = (K[0, 0] * xn + K[0, 1] * yn + K[0, 2]).reshape(rows, 8)
+        uv[:, 8:] = (K[1, 1] * yn + K[1, 2]).reshape(rows, 8)
+        u, v = uv[:, :8], uv[:, 8:]
+        extremes = np.stack([u.argmin(axis=1), v.argmin(axis=1), u.argmax(axis=1), v.argmax(axis=1)], axis=1)
+        model = uv.ravel()[extremes + data.uv_edge_base]
         values = ((model - data.boxes) / data.scale)[keep]
         corner = data.kept_first_corner + extremes[keep]
         return _BoxFitPoint(x, values, True, corner, data.kept_is_u, data.kept_scale)
@@ -642,13 +649,15 @@ def _box_residuals(
     count, rows = len(R), len(data.boxes)
     points_cam = np.matmul(data.corners, R.transpose(0, 2, 1)) - np.matmul(R, C[:, :, None])[:, None, :, 0]
     depth = points_cam[..., 2]
-    in_front = np.all(depth > 1e-6, axis=1)
-    xy = points_cam[..., :2] / np.where(depth > 1e-6, depth, 1.0)[..., None]
+    is_ahead = depth > 1e-6
+    in_front = np.all(is_ahead, axis=1)
+    safe_depth = np.where(is_ahead, depth, 1.0)
+    xn, yn = points_cam[..., 0] / safe_depth, points_cam[..., 1] / safe_depth
     if camera.has_distortion:
-        xy = distort_normalized(xy.reshape(-1, 2), camera.dist).reshape(count, -1, 2)
+        xn, yn = distort_xy(xn, yn, camera.dist)
     K = camera.K
-    u = (K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]).reshape(count, rows, 8)
-    v = (K[1, 1] * xy[..., 1] + K[1, 2]).reshape(count, rows, 8)
+    u = (K[0, 0] * xn + K[0, 1] * yn + K[0, 2]).reshape(count, rows, 8)
+    v = (K[1, 1] * yn + K[1, 2]).reshape(count, rows, 8)
     model = np.stack([u.min(axis=2), v.min(axis=2), u.max(axis=2), v.max(axis=2)], axis=2)
     return (model - data.boxes) / data.scale, in_front
 

@@ -91,13 +91,17 @@ def frames_from_detections(frames: Sequence[DetectionFrame]) -> list[FrameBoxes]
 def _frames_from_table(table: DetectionTable) -> list[FrameBoxes]:
     """frames_from_detections on a DetectionTable's columns (its class ids are toolbox ids already)."""
     order = np.argsort(table.stamps, kind="stable")  # stable: first received first
+    # One copy of the columns, each frame a slice of it: the frames share no memory with the table, and
+    # slicing is several times cheaper than a copy per frame (9,000 frames).
+    boxes, classes = table.boxes.copy(), table.classes.copy()
+    stamps, starts = table.stamps.tolist(), table.starts.tolist()
     result: list[FrameBoxes] = []
     for index in order.tolist():
-        stamp_ns = int(table.stamps[index])
+        stamp_ns = stamps[index]
         if result and result[-1].stamp_ns == stamp_ns:
             continue
-        boxes, classes = table.frame_boxes(index)
-        result.append(FrameBoxes(stamp_ns=stamp_ns, boxes=boxes, classes=classes))
+        lo, hi = starts[index], starts[index + 1]
+        result.append(FrameBoxes(stamp_ns=stamp_ns, boxes=boxes[lo:hi], classes=classes[lo:hi]))
     return result
 
 

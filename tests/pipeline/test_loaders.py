@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -12,8 +14,11 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline import loaders
 from pipeline.errors import InputError
 from pipeline.loaders import (
+    _block_detection_table,
+    _block_pose_table,
     _checked_detection_frames,
     _fast_parse_stamped_rows,
     _load_stamped_yaml,
@@ -28,6 +33,7 @@ from pipeline.loaders import (
     load_toolbox_poses,
     load_vehicle,
 )
+from pipeline.tables import DetectionTable, PoseTable
 from schemas.common import Box, CameraIntrinsics, VehicleProfile
 from schemas.files import GroundTruth, GroundTruthFrame
 from schemas.messages import DetectionFrame, VehiclePose
@@ -302,6 +308,119 @@ def test_fast_parser_reads_the_toolbox_block_style() -> None:
         fast = _fast_parse_stamped_rows(text)
         assert fast is not None and fast == yaml.safe_load(text)
     assert fast[1659612577050000000][1] == [1.5, 2.5, 3.0, 4.0, 5]
+
+
+@contextmanager
+def _general_path() -> Iterator[None]:
+    """The toolbox loaders with the block layout's column reader switched off: the general path alone."""
+    original = loaders._block_pose_table, loaders._block_detection_table
+    loaders._block_pose_table = lambda raw: None  # type: ignore[assignment]
+    loaders._block_detection_table = lambda raw, camera_id: None  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        loaders._block_pose_table, loaders._block_detection_table = original
+
+
+def _load_table(path: Path, poses: bool, camera_id: str) -> PoseTable | DetectionTable | str:
+    """The file's pose or detection table, or the message of the InputError it raises."""
+    try:
+        return load_toolbox_pose_table(path) if poses else load_toolbox_detection_table(path, camera_id)
+    except InputError as err:
+        return str(err)
+
+
+def _same_table(a: PoseTable | DetectionTable | str, b: PoseTable | DetectionTable | str) -> bool:
+    """Equal messages, or tables with the same columns bit for bit (dtype and bytes)."""
+    if isinstance(a, str) or isinstance(b, str):
+        return a == b
+    names = ("stamps", "values") if isinstance(a, PoseTable) else ("stamps", "starts", "boxes", "classes")
+    return type(a) is type(b) and all(
+        getattr(a, n).dtype == getattr(b, n).dtype and getattr(a, n).tobytes() == getattr(b, n).tobytes()
+        for n in names
+    )
+
+
+def _block_text(stamps: list[str], records: list[list[list[str]]], poses: bool) -> str:
+    """A toolbox file in yaml.dump's block style: per stamp its values one per line (poses, the first row
+    only), or its rows as nested block sequences (detections; `stamp: []` for none)."""
+    pairs = zip(stamps, records, strict=False)
+    if poses:
+        return "".join(k + ":\n" + "".join(f"- {v}\n" for v in rows[0]) for k, rows in pairs)
+    return "".join(
+        k + (":\n" if rows else ": []\n")
+        + "".join(f"- - {row[0]}\n" + "".join(f"  - {v}\n" for v in row[1:]) for row in rows)
+        for k, rows in pairs
+    )  # fmt: skip
+
+
+# Numbers as yaml.dump writes floats (repr, with `1.0e-05` style exponents) and ints; rarely a token outside
+# the block reader's grammar or range (the general path reads or refuses it).
+_dumped_float = st.floats(allow_nan=False, allow_infinity=False).map(
+    lambda v: yaml.safe_dump(v).split("\n")[0]
+)
+_odd_token = st.sampled_from(["-0", "007", "1e3", "1.5e3", ".5", "+1", ".nan", "9" * 400, "1" * 5000, "1.0 "])
+_int_token = st.integers(-(10**6), 10**6).map(str)
+# Hypothesis favours the low end of a range: 0 draws the usual token, only the top one an odd one.
+_block_token = st.integers(0, 40).flatmap(
+    lambda k: _odd_token if k == 40 else (_dumped_float if k % 2 == 0 else _int_token)
+)
+_odd_stamp = st.sampled_from(["0", "5", "1" + "0" * 19, f"'{T0}'", "01", f"{T0}"])
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data(), poses=st.booleans(), camera_id=st.sampled_from(["camera", "camera", "cam 7"]))
+def test_block_reader_gives_the_general_paths_tables(
+    tmp_path_factory: pytest.TempPathFactory, data: st.DataObject, poses: bool, camera_id: str
+) -> None:
+    # The toolbox's block layout is read straight into columns; wherever the reader does not decline a file
+    # (None), its table is the general path's, bit for bit, and so is the loader's outcome on every file.
+    # Mostly files of the layout (sorted stamps, 6 values a pose, 5 a box), some a little off.
+    count = data.draw(st.integers(1, 5))
+    stamps = [
+        str(s)
+        for s in sorted(data.draw(st.sets(st.integers(T0, T0 + 10**9), min_size=count, max_size=count)))
+    ]
+    if data.draw(st.integers(0, 3)) == 3:
+        stamps[data.draw(st.integers(0, count - 1))] = data.draw(_odd_stamp)  # unsorted, quoted, out of range
+    width = 6 if poses else 5
+    if data.draw(st.integers(0, 5)) == 5:
+        width = data.draw(st.sampled_from([4, 7]))
+    rows = st.lists(_block_token, min_size=width, max_size=width)
+    if not poses and width == 5 and data.draw(st.integers(0, 3)) < 3:  # mostly boxes that pass every check
+        size = st.floats(0.5, 500.0).map(lambda v: yaml.safe_dump(v).split("\n")[0])
+        corner = st.floats(0.0, 1900.0).map(lambda v: yaml.safe_dump(v).split("\n")[0])
+        rows = st.tuples(corner, corner, size, size, st.integers(0, 7).map(str)).map(list)
+    records = [data.draw(st.lists(rows, min_size=1 if poses else 0, max_size=3)) for _ in stamps]
+    text = _block_text(stamps, records, poses)
+    path = _write(tmp_path_factory.mktemp("block"), "p.yaml" if poses else "d.yaml", text)
+    with _general_path():
+        general = _load_table(path, poses, camera_id)
+    block = _block_pose_table(text.encode()) if poses else _block_detection_table(text.encode(), camera_id)
+    if block is not None:
+        assert _same_table(block, general)
+    assert _same_table(_load_table(path, poses, camera_id), general)
+
+
+def test_block_reader_takes_the_toolbox_files(tmp_path: Path) -> None:
+    """The files `bench.speed --cli` writes (yaml.dump's block style, as the toolbox publishes its real
+    track) take the block reader and give the general path's tables."""
+    poses = {
+        T0 + 20_000_000 * i: [715674.05 + i, 5337055.9, 572.0, -3.14159, -2.4e-17, 0.02] for i in range(50)
+    }
+    detections = {
+        T0 + 10**8 * i: [[87.7 + j, 333.03, 56.68, 34.18, 4 + i % 4] for j in range(i % 3)] for i in range(20)
+    }
+    for name, data in (("p.yaml", poses), ("d.yaml", detections)):
+        text = yaml.dump(data, Dumper=yaml.SafeDumper, default_flow_style=False)
+        path = _write(tmp_path, name, text)
+        block = (
+            _block_pose_table(text.encode()) if data is poses else _block_detection_table(text.encode(), "c")
+        )
+        with _general_path():
+            general = _load_table(path, data is poses, "c")
+        assert block is not None and not isinstance(general, str)
+        assert _same_table(block, general)
 
 
 def test_intrinsics_and_vehicle_round_trip(tmp_path: Path) -> None:
