@@ -289,6 +289,31 @@ def test_a_camera_moved_between_the_halves_is_caught(moved_m: float, turned_deg:
     assert check.shift_m >= 0.9 * moved_m and check.angle_deg >= 0.9 * turned_deg
 
 
+@pytest.mark.parametrize("moved_m", [0.0, 0.3])
+def test_a_drift_between_the_halves_too_small_to_flag_widens_the_uncertainty(moved_m: float):
+    """A 0.3 m drift along x between three drive-pasts and three more stays within what three drive-pasts
+    fix (not flagged), and each left-out fit keeps both sides; the two halves' difference d enters the
+    check's covariance as d d^T / 4: along x at least (0.3 / 2)^2 less a tenth (measured: halves 0.29 m
+    apart, the jackknife alone 0.14 m). Six drive-pasts that agree keep it at centimetres (0.011 m)."""
+    trajectory, tracks = _five_passes(moved_m, 0.0, seed=1, moved_from=3, passes=6)
+    params = ModelParams()
+    R0, t0 = _start(2)
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
+    left_out = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+    check = check_traversals(left_out, trajectory, CAMERA, VEHICLE, params)
+    assert check.disagreeing == ""
+    assert check.covariance is not None
+    # The jackknife's share along x, from the left-out fits' camera centres.
+    x = np.array([f.camera_centre[0] for f in left_out.fits if not isinstance(f, str)])
+    jackknife_var_x = (len(x) - 1) / len(x) * float(np.sum((x - x.mean()) ** 2))
+    split_std_x = math.sqrt(max(float(check.covariance[3, 3]) - jackknife_var_x, 0.0))
+    if moved_m > 0:
+        assert split_std_x >= 0.9 * moved_m / 2, split_std_x
+        assert check.shift_m >= 0.9 * moved_m
+    else:
+        assert math.sqrt(float(check.covariance[3, 3])) < 0.03
+
+
 @pytest.mark.parametrize("passes", [5, 6])
 def test_five_consistent_drive_pasts_agree(passes: int):
     trajectory, tracks = _five_passes(0.0, 0.0, seed=1, passes=passes)
