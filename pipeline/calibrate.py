@@ -38,7 +38,7 @@ from pipeline.attitude import with_path_pitch
 from pipeline.camera import CameraModel
 from pipeline.clock import ClockParams, ClockScan, refitted, rematcher, scan_clock, shifted, track_velocity
 from pipeline.errors import DegenerateGeometry
-from pipeline.final_fit import FinalFit, final_fit
+from pipeline.final_fit import FinalFit, JointFit, final_fit, joint_fit
 from pipeline.ground import GroundPlaneFit, fit_ground_plane
 from pipeline.grouping import GroupingParams, GroupingResult, group_hypotheses
 from pipeline.hypotheses import (
@@ -53,6 +53,7 @@ from pipeline.refinement import RefinementParams
 from pipeline.result import SOFTWARE_VERSION, calibration_result, refused_result
 from pipeline.selection import (
     Candidate,
+    Choice,
     Scene,
     SelectionParams,
     choose,
@@ -187,12 +188,13 @@ def calibrate(
             scan: bool = False,
             hypotheses: Sequence[Hypothesis] | None = None,
             focus: Candidate | None = None,
-        ) -> CalibrationOutcome | ClockScan:
+            first: bool = False,
+        ) -> CalibrationOutcome | ClockScan | _Pending:
             return _calibrate(
-                on, params, rng, progress, created_at_ns, map_fn, tracked, scan, hypotheses, focus
+                on, params, rng, progress, created_at_ns, map_fn, tracked, scan, hypotheses, focus, first
             )
 
-        scanned = run(inputs, scan=True)
+        scanned = run(inputs, scan=True, first=True)
         notes: tuple[StageReport, ...] = ()
         if isinstance(scanned, ClockScan):
             # No two drive-pasts agreed on the assumed clock, but they do on another (pipeline.clock).
@@ -206,11 +208,17 @@ def calibrate(
                      "again on that clock",),
                 ),
             )  # fmt: skip
-            scanned = run(inputs, hypotheses=scanned.hypotheses)
+            scanned = run(inputs, hypotheses=scanned.hypotheses, first=True)
         assert not isinstance(scanned, ClockScan)  # only a pass with `scan` returns one
-        first = replace(scanned, stages=(*notes, *scanned.stages))
-        estimate = first.result.time_offset_ns
+        first: CalibrationOutcome | _Pending
+        estimate: int | None
+        if isinstance(scanned, _Pending):
+            first, estimate = replace(scanned, before=notes), scanned.estimate_ns
+        else:
+            first = replace(scanned, stages=(*notes, *scanned.stages))
+            estimate = first.result.time_offset_ns
         if estimate is None or abs(estimate - inputs.time_offset_ns) <= params.repeat_offset_ns:
+            assert isinstance(first, CalibrationOutcome)  # a pass is pending only beyond that
             return first
         # The stages before the final fit paired boxes and poses on the assumed clock: a latency of 0.2 s
         # puts the vehicle 2 m from its boxes, which spoils hypotheses, grouping and extension. With the
@@ -218,7 +226,7 @@ def calibrate(
         # the fit); the estimate is then the prior. Its hypotheses are fitted again only for the tracks during
         # which the first pass's camera sees the vehicle (the others keep that pass's, moved to this clock).
         second = run(replace(inputs, time_offset_ns=estimate), focus=first.chosen)
-        assert not isinstance(second, ClockScan)
+        assert isinstance(second, CalibrationOutcome)  # neither scanning nor first
         said = (
             f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
             f"{inputs.time_offset_ns / 1e6:.1f} ms: every stage ran again on the corrected clock"
@@ -227,11 +235,12 @@ def calibrate(
             # Single-track hypotheses are coarse, and on the corrected clock they may group nothing where
             # they grouped on the first; the first pass's final fit estimated the offset with the pose, so
             # its result stands (with its own gates) rather than a refusal for want of a group.
+            stands = first.finish() if isinstance(first, _Pending) else first
             why = second.result.verdict.reasons[0] if second.result.verdict.reasons else "refused"
             note = StageReport(
                 "time offset", 0, 1, (f"{said}, where it found no pose ({why}): the first pass stands",)
             )
-            return replace(first, stages=(note, *first.stages))
+            return replace(stands, stages=(note, *stands.stages))
         note = StageReport("time offset", 1, 0, (said,))
         return replace(second, stages=(*notes, note, *second.stages))
 
@@ -247,13 +256,16 @@ def _calibrate(
     scan: bool,
     hypotheses: Sequence[Hypothesis] | None = None,
     focus: Candidate | None = None,
-) -> CalibrationOutcome | ClockScan:
+    first: bool = False,
+) -> CalibrationOutcome | ClockScan | _Pending:
     """One pass of every stage on the clock `inputs.time_offset_ns`, in order; each appends its report, a
     stage that leaves nothing to go on refuses. With `scan`, a pass whose grouping finds nothing searches
     other clocks and returns the best (pipeline.clock) for the caller to run again on; that run starts from
     the scan's `hypotheses`, moved to the new clock, instead of fitting new ones. With `focus` (the previous
     pass's chosen candidate), only the tracks during which its pose sees the vehicle get new hypotheses
-    (`_focused`)."""
+    (`_focused`). With `first`, a pass whose settled joint fit (final_fit.JointFit) moves the clock by more
+    than `params.repeat_offset_ns` returns it pending: the caller runs again on the new clock and finishes
+    this pass only if it needs its result."""
     report: list[StageReport] = []
     say = progress or (lambda _stage, _fraction: None)
     camera = CameraModel.from_intrinsics(inputs.intrinsics)
@@ -343,12 +355,77 @@ def _calibrate(
 
     say("final fit", 0.94)
     try:
-        final = final_fit(
-            choice.chosen, scene, params.model, params.min_time_shift_s, params.template_gain, map_fn
-        )
+        joint = joint_fit(choice.chosen, scene, params.model, params.min_time_shift_s)
     except DegenerateGeometry as err:
         return refuse(f"final fit: {err}", origin)
-    report.append(final.report(inputs.time_offset_ns))
+    pending = _Pending(
+        inputs, params, created_at_ns, map_fn, report, diagnostics, origin, scene, choice, final_ground, joint
+    )
+    # The leave-one-out fits would be wasted on a clock the caller is about to correct.
+    if first and joint.settled and abs(pending.estimate_ns - inputs.time_offset_ns) > params.repeat_offset_ns:
+        return pending
+    return pending.finish(say)
+
+
+@dataclass(frozen=True, slots=True)
+class _Pending:
+    """A pass up to the final fit's first part (JointFit), and everything needed to finish it: the final
+    fit's leave-one-out fits, the gates and the result. `before`: stage reports to put first."""
+
+    inputs: CalibrationInputs
+    params: PipelineParams
+    created_at_ns: int
+    map_fn: MapFn
+    report: list[StageReport]
+    diagnostics: CalibrationDiagnostics
+    origin: LocalOrigin
+    scene: Scene
+    choice: Choice
+    final_ground: GroundPlaneFit
+    joint: JointFit
+    before: tuple[StageReport, ...] = ()
+
+    @property
+    def estimate_ns(self) -> int:
+        """The clock the joint fit estimated (the result's time_offset_ns where it is settled)."""
+        return self.joint.time_offset_ns(self.inputs.time_offset_ns)
+
+    @property
+    def chosen(self) -> Candidate:
+        return self.choice.chosen
+
+    def finish(
+        self, say: Callable[[str, float], None] = lambda _stage, _fraction: None
+    ) -> CalibrationOutcome:
+        inputs, params, choice, report = self.inputs, self.params, self.choice, [*self.before, *self.report]
+        try:
+            final = final_fit(
+                choice.chosen,
+                self.scene,
+                params.model,
+                params.min_time_shift_s,
+                params.template_gain,
+                self.map_fn,
+                self.joint,
+            )
+        except DegenerateGeometry as err:
+            result = refused_result(inputs, params, self.origin, self.created_at_ns, [f"final fit: {err}"])
+            return CalibrationOutcome(result, tuple(report), (), None, self.diagnostics)
+        report.append(final.report(inputs.time_offset_ns))
+        return _finished(self, final, report, say)
+
+
+def _finished(
+    pending: _Pending, final: FinalFit, report: list[StageReport], say: Callable[[str, float], None]
+) -> CalibrationOutcome:
+    """The gates and the result of a pass whose final fit is done."""
+    inputs, params, choice, final_ground = (
+        pending.inputs,
+        pending.params,
+        pending.choice,
+        pending.final_ground,
+    )
+    origin, created_at_ns, diagnostics = pending.origin, pending.created_at_ns, pending.diagnostics
 
     verdict = _validate(final, final_ground, choice.ambiguity, params.gates)
     result = calibration_result(

@@ -94,19 +94,34 @@ class FinalFit:
         )
 
 
-def final_fit(
-    chosen: Candidate,
-    scene: Scene,
-    model: ModelParams,
-    min_time_shift_s: float,
-    template_gain: float,
-    map_fn: Callable[..., Iterable[Any]] = map,
-) -> FinalFit:
-    """The joint fit from the chosen candidate's pose; `min_time_shift_s`: a fitted time shift smaller than
-    this (and than 3 of its std) leaves the prior offset in place; `template_gain`: the template and detector
-    convention replace the cuboid only when their cross-validated misfit is below this share of the
-    cuboid's. `map_fn` runs the two model classes' leave-one-out fits (independent; a process pool's map
-    runs them side by side with identical results)."""
+@dataclass(frozen=True, slots=True)
+class JointFit:
+    """The final fit's first part: the chosen tracks fitted with the pose, clock, template and detector
+    convention (trimmed, extended, the clock held where the data do not move it), and whether the boxes
+    reject the cuboid body. When they do, the template is the model and this fit's clock is the result's,
+    so a caller may decide on it (`settled`) before the leave-one-out fits that final_fit adds."""
+
+    fit: ModelFit
+    used: list[MatchedTrack]
+    members: list[MatchedTrack]
+    model_params: ModelParams
+    time_offset_std_s: float
+    rejection: float  # cuboid_rejection of the fit
+    body_shown: bool
+
+    @property
+    def settled(self) -> bool:
+        """The model class, and with it the fitted clock, is already final_fit's."""
+        return self.body_shown
+
+    def time_offset_ns(self, prior_ns: int) -> int:
+        """Vehicle clock minus camera stamp: the prior minus the fitted shift (as FinalFit's)."""
+        return int(prior_ns - round(self.fit.time_shift_s * 1e9))
+
+
+def joint_fit(chosen: Candidate, scene: Scene, model: ModelParams, min_time_shift_s: float) -> JointFit:
+    """The final fit's first part (JointFit) from the chosen candidate's pose; `min_time_shift_s`: a fitted
+    time shift smaller than this (and than 3 of its std) leaves the prior offset in place."""
     trajectory, camera, vehicle = scene.trajectory, scene.camera, scene.vehicle
     members = scene.members(chosen.track_ids)
     start = chosen.whole_box
@@ -135,11 +150,7 @@ def final_fit(
             model_box_error(wider, union, trajectory, camera, vehicle, finding), error, scene.selection
         ):
             fit, used, members = wider, wider_used, union
-    # Does the vehicle need the template and the detector convention at all? Where the boxes are the
-    # cuboid's (the first simulator's world, a detector trained on cuboid boxes) the extra freedom only
-    # widens the covariance: the cuboid fit is kept when it explains the boxes as well within chance.
     model_params = model
-    templated = True
     # Likewise the clock: a shift within max(3 std, min_time_shift_s) of the prior is no evidence against
     # it, and left free it soaks up slow pose errors instead (the first simulator's drifting IMU poses
     # gave -6 ms +- 0.6 ms and twice the scatter between traversals); it is then held at the prior.
@@ -153,14 +164,49 @@ def final_fit(
                 fit.R_cam_from_local, fit.t_cam_from_local, used, trajectory, camera, vehicle, model_params
             )
     # Do the boxes show a body other than the cuboid? The template fit's departure from the cuboid, against
-    # its own uncertainty (chi-square, 6 dof). Then the cuboid is no candidate: where cross-validation
-    # preferred it on such boxes its pose was the worse one (realistic van seed 0: 0.51 m / 0.29 deg off,
-    # the template 0.25 m / 0.12 deg), and held to the cuboid the final fit was 0.57 m / 0.51 deg off in
-    # the median of 16 realistic scenes against the template's 0.24 m / 0.20 deg.
+    # its own uncertainty (chi-square, 6 dof).
     rejection = cuboid_rejection(fit, vehicle)
-    body_shown = rejection > model.cuboid_rejection_chi2
+    return JointFit(
+        fit,
+        used,
+        members,
+        model_params,
+        time_offset_std_s,
+        rejection,
+        rejection > model.cuboid_rejection_chi2,
+    )
+
+
+def final_fit(
+    chosen: Candidate,
+    scene: Scene,
+    model: ModelParams,
+    min_time_shift_s: float,
+    template_gain: float,
+    map_fn: Callable[..., Iterable[Any]] = map,
+    joint: JointFit | None = None,
+) -> FinalFit:
+    """The joint fit from the chosen candidate's pose (joint_fit, unless `joint` is given: its result for
+    the same arguments), then the model class and each traversal left out in turn; `template_gain`: the
+    template and detector convention replace the cuboid only when their cross-validated misfit is below
+    this share of the cuboid's. `map_fn` runs the two model classes' leave-one-out fits (independent; a
+    process pool's map runs them side by side with identical results)."""
+    trajectory, camera, vehicle = scene.trajectory, scene.camera, scene.vehicle
+    if joint is None:
+        joint = joint_fit(chosen, scene, model, min_time_shift_s)
+    fit, used, members = joint.fit, joint.used, joint.members
+    model_params, time_offset_std_s = joint.model_params, joint.time_offset_std_s
+    # Does the vehicle need the template and the detector convention at all? Where the boxes are the
+    # cuboid's (the first simulator's world, a detector trained on cuboid boxes) the extra freedom only
+    # widens the covariance: the cuboid fit is kept when it explains the boxes as well within chance.
+    templated = True
+    # When the boxes reject the cuboid body the cuboid is no candidate: where cross-validation preferred it
+    # on such boxes its pose was the worse one (realistic van seed 0: 0.51 m / 0.29 deg off, the template
+    # 0.25 m / 0.12 deg), and held to the cuboid the final fit was 0.57 m / 0.51 deg off in the median of
+    # 16 realistic scenes against the template's 0.24 m / 0.20 deg.
+    body_shown = joint.body_shown
     body = (
-        f"the template: the boxes reject the cuboid body (chi-square {rejection:.0f} > "
+        f"the template: the boxes reject the cuboid body (chi-square {joint.rejection:.0f} > "
         f"{model.cuboid_rejection_chi2:.0f})"
     )
     plain = cuboid_params(model_params)

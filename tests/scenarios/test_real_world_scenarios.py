@@ -123,3 +123,55 @@ def test_cuboid_boxes_keep_the_cuboid() -> None:
     )
     notes = _stage_notes(outcome, "final fit")
     assert "body the cuboid" in notes, notes
+
+
+def _calibrated(preset: str, seed: int) -> CalibrationOutcome:
+    sim = simulate(preset, seed=seed)
+    inputs = calibration_inputs(sim, sim.cameras[0].camera_id)
+    return calibrate(
+        inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED), created_at_ns=CREATED_AT_NS
+    )
+
+
+def _stages(outcome: CalibrationOutcome) -> list[tuple[str, int, int, tuple[str, ...]]]:
+    return [(s.stage, s.kept, s.discarded, tuple(s.notes)) for s in outcome.stages]
+
+
+@pytest.mark.parametrize("second_pass_finds_nothing", [False, True])
+def test_a_first_pass_on_the_wrong_clock_is_finished_only_when_it_stands(
+    monkeypatch: pytest.MonkeyPatch, second_pass_finds_nothing: bool
+) -> None:
+    # sil-south seed 0: the first pass's joint fit settles the body (the boxes reject the cuboid) and moves
+    # the clock by more than 30 ms, so its leave-one-out fits are skipped and every stage runs again on the
+    # corrected clock. The result must be the one the whole first pass would have led to: with the second
+    # pass's result when it finds a pose, with the first pass finished when it does not.
+    import pipeline.calibrate as pipeline_calibrate
+    from pipeline.final_fit import JointFit
+
+    passes = pipeline_calibrate._calibrate
+    kinds: list[str] = []
+
+    def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
+        focus = args[9] if len(args) > 9 else kwargs.get("focus")
+        if second_pass_finds_nothing and focus is not None:
+            # On the corrected clock no group forms (as single-track hypotheses sometimes do not).
+            inputs, params = args[0], args[1]
+            result = pipeline_calibrate.refused_result(inputs, params, None, CREATED_AT_NS, ["no group"])
+            kinds.append("refused")
+            return CalibrationOutcome(result, (), (), None, None)
+        outcome = passes(*args, **kwargs)
+        kinds.append(type(outcome).__name__)
+        return outcome
+
+    monkeypatch.setattr(pipeline_calibrate, "_calibrate", counted)
+    deferred = _calibrated("sil-south", 0)
+    assert kinds[0] == "_Pending"
+    # The same with the first pass run whole.
+    kinds.clear()
+    monkeypatch.setattr(JointFit, "settled", property(lambda self: False))
+    whole = _calibrated("sil-south", 0)
+    assert kinds[0] == "CalibrationOutcome"
+    assert deferred.result.model_dump() == whole.result.model_dump()
+    assert _stages(deferred) == _stages(whole)
+    notes = " ".join(note for s in deferred.stages if s.stage == "time offset" for note in s.notes)
+    assert ("the first pass stands" in notes) == second_pass_finds_nothing, notes
