@@ -272,8 +272,7 @@ def _calibrate(
     diagnostics: CalibrationDiagnostics | None = None  # grows with each stage, for refusals too
 
     def refuse(reason: str, origin: LocalOrigin | None = None) -> CalibrationOutcome:
-        result = refused_result(inputs, params, origin, created_at_ns, [reason])
-        return CalibrationOutcome(result, tuple(report), (), None, diagnostics)
+        return _refused(inputs, params, origin, created_at_ns, reason, report, diagnostics)
 
     if not inputs.poses or not inputs.detections:
         return refuse(
@@ -361,10 +360,26 @@ def _calibrate(
     pending = _Pending(
         inputs, params, created_at_ns, map_fn, report, diagnostics, origin, scene, choice, final_ground, joint
     )
-    # The leave-one-out fits would be wasted on a clock the caller is about to correct.
-    if first and joint.settled and abs(pending.estimate_ns - inputs.time_offset_ns) > params.repeat_offset_ns:
+    # The leave-one-out fits would be wasted on a clock the caller is about to correct; where the boxes
+    # reject the cuboid body the template is the model, and this clock is already the result's.
+    moved = abs(pending.estimate_ns - inputs.time_offset_ns) > params.repeat_offset_ns
+    if first and joint.body_shown and moved:
         return pending
     return pending.finish(say)
+
+
+def _refused(
+    inputs: CalibrationInputs,
+    params: PipelineParams,
+    origin: LocalOrigin | None,
+    created_at_ns: int,
+    reason: str,
+    report: Sequence[StageReport],
+    diagnostics: CalibrationDiagnostics | None,
+) -> CalibrationOutcome:
+    """A pass refused for `reason` after the stages of `report`."""
+    result = refused_result(inputs, params, origin, created_at_ns, [reason])
+    return CalibrationOutcome(result, tuple(report), (), None, diagnostics)
 
 
 @dataclass(frozen=True, slots=True)
@@ -397,44 +412,24 @@ class _Pending:
     def finish(
         self, say: Callable[[str, float], None] = lambda _stage, _fraction: None
     ) -> CalibrationOutcome:
-        inputs, params, choice, report = self.inputs, self.params, self.choice, [*self.before, *self.report]
+        """The rest of the pass: the final fit's leave-one-out fits, the gates, the result."""
+        inputs, params, choice, final_ground = self.inputs, self.params, self.choice, self.final_ground
+        origin, created_at_ns, report = self.origin, self.created_at_ns, [*self.before, *self.report]
         try:
-            final = final_fit(
-                choice.chosen,
-                self.scene,
-                params.model,
-                params.min_time_shift_s,
-                params.template_gain,
-                self.map_fn,
-                self.joint,
-            )
+            final = final_fit(self.joint, self.scene, params.model, params.template_gain, self.map_fn)
         except DegenerateGeometry as err:
-            result = refused_result(inputs, params, self.origin, self.created_at_ns, [f"final fit: {err}"])
-            return CalibrationOutcome(result, tuple(report), (), None, self.diagnostics)
+            return _refused(
+                inputs, params, origin, created_at_ns, f"final fit: {err}", report, self.diagnostics
+            )
         report.append(final.report(inputs.time_offset_ns))
-        return _finished(self, final, report, say)
-
-
-def _finished(
-    pending: _Pending, final: FinalFit, report: list[StageReport], say: Callable[[str, float], None]
-) -> CalibrationOutcome:
-    """The gates and the result of a pass whose final fit is done."""
-    inputs, params, choice, final_ground = (
-        pending.inputs,
-        pending.params,
-        pending.choice,
-        pending.final_ground,
-    )
-    origin, created_at_ns, diagnostics = pending.origin, pending.created_at_ns, pending.diagnostics
-
-    verdict = _validate(final, final_ground, choice.ambiguity, params.gates)
-    result = calibration_result(
-        inputs, params, origin, created_at_ns, choice.chosen.metrics, final, final_ground, verdict
-    )
-    report.append(_validation_report(verdict))
-    say("done", 1.0)
-    diagnostics = replace(diagnostics, ground=final_ground)
-    return CalibrationOutcome(result, tuple(report), choice.candidates, choice.chosen, diagnostics)
+        verdict = _validate(final, final_ground, choice.ambiguity, params.gates)
+        result = calibration_result(
+            inputs, params, origin, created_at_ns, choice.chosen.metrics, final, final_ground, verdict
+        )
+        report.append(_validation_report(verdict))
+        say("done", 1.0)
+        diagnostics = replace(self.diagnostics, ground=final_ground)
+        return CalibrationOutcome(result, tuple(report), choice.candidates, choice.chosen, diagnostics)
 
 
 def _scan_clock(

@@ -73,8 +73,7 @@ class FinalFit:
         return largest_stds(self.covariance)[1]
 
     def time_offset_ns(self, prior_ns: int) -> int:
-        """Vehicle clock minus camera stamp: the prior minus the fitted shift."""
-        return int(prior_ns - round(self.fit.time_shift_s * 1e9))
+        return _time_offset_ns(self.fit, prior_ns)
 
     def report(self, prior_ns: int) -> StageReport:
         body_m, body_deg = largest_stds(self.shape_covariance)
@@ -99,7 +98,7 @@ class JointFit:
     """The final fit's first part: the chosen tracks fitted with the pose, clock, template and detector
     convention (trimmed, extended, the clock held where the data do not move it), and whether the boxes
     reject the cuboid body. When they do, the template is the model and this fit's clock is the result's,
-    so a caller may decide on it (`settled`) before the leave-one-out fits that final_fit adds."""
+    so a caller may decide on it (`body_shown`) before the leave-one-out fits that final_fit adds."""
 
     fit: ModelFit
     used: list[MatchedTrack]
@@ -107,16 +106,15 @@ class JointFit:
     model_params: ModelParams
     time_offset_std_s: float
     rejection: float  # cuboid_rejection of the fit
-    body_shown: bool
-
-    @property
-    def settled(self) -> bool:
-        """The model class, and with it the fitted clock, is already final_fit's."""
-        return self.body_shown
+    body_shown: bool  # the boxes reject the cuboid body: the template is the model, this fit's clock final
 
     def time_offset_ns(self, prior_ns: int) -> int:
-        """Vehicle clock minus camera stamp: the prior minus the fitted shift (as FinalFit's)."""
-        return int(prior_ns - round(self.fit.time_shift_s * 1e9))
+        return _time_offset_ns(self.fit, prior_ns)
+
+
+def _time_offset_ns(fit: ModelFit, prior_ns: int) -> int:
+    """Vehicle clock minus camera stamp: the prior minus the fitted shift."""
+    return int(prior_ns - round(fit.time_shift_s * 1e9))
 
 
 def joint_fit(chosen: Candidate, scene: Scene, model: ModelParams, min_time_shift_s: float) -> JointFit:
@@ -178,45 +176,40 @@ def joint_fit(chosen: Candidate, scene: Scene, model: ModelParams, min_time_shif
 
 
 def final_fit(
-    chosen: Candidate,
+    joint: JointFit,
     scene: Scene,
     model: ModelParams,
-    min_time_shift_s: float,
     template_gain: float,
     map_fn: Callable[..., Iterable[Any]] = map,
-    joint: JointFit | None = None,
 ) -> FinalFit:
-    """The joint fit from the chosen candidate's pose (joint_fit, unless `joint` is given: its result for
-    the same arguments), then the model class and each traversal left out in turn; `template_gain`: the
-    template and detector convention replace the cuboid only when their cross-validated misfit is below
-    this share of the cuboid's. `map_fn` runs the two model classes' leave-one-out fits (independent; a
-    process pool's map runs them side by side with identical results)."""
+    """The final fit from its first part (joint_fit): the model class, then each traversal left out in turn;
+    `template_gain`: the template and detector convention replace the cuboid only when their cross-validated
+    misfit is below this share of the cuboid's. `map_fn` runs the two model classes' leave-one-out fits
+    (independent; a process pool's map runs them side by side with identical results)."""
     trajectory, camera, vehicle = scene.trajectory, scene.camera, scene.vehicle
-    if joint is None:
-        joint = joint_fit(chosen, scene, model, min_time_shift_s)
     fit, used, members = joint.fit, joint.used, joint.members
     model_params, time_offset_std_s = joint.model_params, joint.time_offset_std_s
     # Does the vehicle need the template and the detector convention at all? Where the boxes are the
     # cuboid's (the first simulator's world, a detector trained on cuboid boxes) the extra freedom only
     # widens the covariance: the cuboid fit is kept when it explains the boxes as well within chance.
-    templated = True
     # When the boxes reject the cuboid body the cuboid is no candidate: where cross-validation preferred it
     # on such boxes its pose was the worse one (realistic van seed 0: 0.51 m / 0.29 deg off, the template
     # 0.25 m / 0.12 deg), and held to the cuboid the final fit was 0.57 m / 0.51 deg off in the median of
     # 16 realistic scenes against the template's 0.24 m / 0.20 deg.
-    body_shown = joint.body_shown
-    body = (
-        f"the template: the boxes reject the cuboid body (chi-square {joint.rejection:.0f} > "
-        f"{model.cuboid_rejection_chi2:.0f})"
-    )
+    templated = True
     plain = cuboid_params(model_params)
     cuboid = None
-    if not body_shown:
-        body = "the template: the cuboid fit failed"
+    if joint.body_shown:
+        body = (
+            f"the template: the boxes reject the cuboid body (chi-square {joint.rejection:.0f} > "
+            f"{model.cuboid_rejection_chi2:.0f})"
+        )
+    else:
         with contextlib.suppress(DegenerateGeometry):
             cuboid = fit_vehicle_model(
                 fit.R_cam_from_local, fit.t_cam_from_local, used, trajectory, camera, vehicle, plain
             )
+        body = "the template: the cuboid fit failed"
     # Otherwise chosen by cross-validation over the traversals: the template and detector convention are
     # kept only when they predict each left-out drive-past clearly better than the cuboid does (a
     # chi-square test on the residuals let them fit the first simulator's per-traversal pose drift and lose

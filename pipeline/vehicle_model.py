@@ -86,7 +86,7 @@ class ModelParams:
     max_evaluations: int = 100  # per pass (the weights of the second come from the first's residuals)
     time_shift_std_s: float = 0.5  # a configured or last estimated offset is a prior, not a requirement
     # Template: clearance and shoulder heights (m), roof span ends (m along the body) and roof inset (m).
-    shape_std: tuple[float, ...] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4)
+    shape_std: tuple[float, float, float, float, float, float] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4)
     scale_std: float = 0.1  # detector box scale about its centre
     # The detector's convention: boxes shifted as a whole (px) and grown or shrunk by a constant (px). A shift
     # of every box by d px looks almost exactly like the camera turned by d / f rad: the data tell them apart
@@ -634,6 +634,11 @@ def _pose_difference(R_a: Rotation, C_a: Vec3, R_b: Rotation, C_b: Vec3) -> Floa
     return np.concatenate([-rvec_from_rotation(R_a.T @ R_b), C_b - C_a])
 
 
+def _move_size(difference: FloatArray) -> tuple[float, float]:
+    """(m, deg): how far a pose difference [w, C] (_pose_difference) moves the camera and turns it."""
+    return float(np.linalg.norm(difference[3:])), math.degrees(float(np.linalg.norm(difference[:3])))
+
+
 def _tight_boxes(uv: FloatArray) -> tuple[Boxes, IntArray]:
     """Projected points (N, K, 2) -> their tight boxes (N, 4) x1, y1, x2, y2 and the index of the point
     forming each edge (N, 4)."""
@@ -826,9 +831,8 @@ def check_traversals(
         delta = _pose_difference(
             fit.R_cam_from_local, fit.camera_centre, loo.R_cam_from_local, loo.camera_centre
         )
-        w, dC = delta[:3], delta[3:]
         deltas.append(delta)
-        shift, angle = float(np.linalg.norm(dC)), math.degrees(float(np.linalg.norm(w)))
+        shift, angle = _move_size(delta)
         worst_shift, worst_angle = max(worst_shift, shift), max(worst_angle, angle)
         # Cross-validation: the left-out traversal's boxes as predicted by the others. Judged on the boxes,
         # not on the pose move against the left-out fit's own std (that std leaves out errors shared within
@@ -859,8 +863,7 @@ def check_traversals(
     if halves:
         problems.append(halves)
     if difference is not None:
-        halves_shift = float(np.linalg.norm(difference[3:]))
-        halves_angle = math.degrees(float(np.linalg.norm(difference[:3])))
+        halves_shift, halves_angle = _move_size(difference)
         worst_shift, worst_angle = max(worst_shift, halves_shift), max(worst_angle, halves_angle)
     k = len(deltas)
     covariance = None
@@ -920,9 +923,8 @@ def _halves_disagree(
     difference = _pose_difference(
         early.R_cam_from_local, early.camera_centre, late.R_cam_from_local, late.camera_centre
     )
-    w, dC = difference[:3], difference[3:]
     chi2 = float(difference @ _inverse(early.covariance + late.covariance) @ difference)
-    shift, angle = float(np.linalg.norm(dC)), math.degrees(float(np.linalg.norm(w)))
+    shift, angle = _move_size(difference)
     if chi2 > params.holdout_pull_chi2 and (
         shift > params.min_disagreement_m or angle > params.min_disagreement_deg
     ):
@@ -1189,7 +1191,7 @@ def cuboid_params(params: ModelParams) -> ModelParams:
     time shift free (the first simulator's world, and any detector that boxes the cuboid)."""
     return replace(
         params,
-        shape_std=(_HELD,) * len(SHAPE_NAMES),
+        shape_std=(_HELD,) * 6,
         scale_std=_HELD,
         shift_std_px=_HELD,
         fit_shift=False,
