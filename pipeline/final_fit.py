@@ -11,15 +11,13 @@ from typing import Any
 import numpy as np
 
 from pipeline.arrays import FloatArray
-from pipeline.association import MatchedTrack, Trajectory, apart_in_time, track_spans
-from pipeline.camera import CameraModel
+from pipeline.association import MatchedTrack, apart_in_time, track_spans
 from pipeline.errors import DegenerateGeometry
 from pipeline.metrics import delta_p
 from pipeline.selection import Candidate, Scene, fits_as_well
 from pipeline.stage import StageReport
 from pipeline.validation import count_traversals
 from pipeline.vehicle_model import (
-    LeftOut,
     ModelFit,
     ModelParams,
     TraversalCheck,
@@ -37,7 +35,6 @@ from pipeline.vehicle_model import (
     model_footprints,
     unbiased_boxes,
 )
-from schemas.common import VehicleProfile
 
 
 @dataclass(frozen=True, slots=True)
@@ -184,7 +181,7 @@ def final_fit(
 ) -> FinalFit:
     """The final fit from its first part (joint_fit): the model class, then each traversal left out in turn;
     `template_gain`: the template and detector convention replace the cuboid only when their cross-validated
-    misfit is below this share of the cuboid's. `map_fn` runs the two model classes' leave-one-out fits
+    misfit is below this share of the cuboid's. `map_fn` runs the leave-one-out and split-half fits
     (independent; a process pool's map runs them side by side with identical results)."""
     trajectory, camera, vehicle = scene.trajectory, scene.camera, scene.vehicle
     fit, used, members = joint.fit, joint.used, joint.members
@@ -214,11 +211,9 @@ def final_fit(
     # kept only when they predict each left-out drive-past clearly better than the cuboid does (a
     # chi-square test on the residuals let them fit the first simulator's per-traversal pose drift and lose
     # 0.1-0.3 m).
-    classes = [(fit, model_params)] + ([] if cuboid is None else [(cuboid, plain)])
-    left_outs = list(map_fn(_LeaveOneOut(used, trajectory, camera, vehicle), *zip(*classes, strict=True)))
-    left_out = left_outs[0]
+    left_out = leave_one_out(fit, used, trajectory, camera, vehicle, model_params, map_fn=map_fn)
     if cuboid is not None:
-        cuboid_left_out = left_outs[1]
+        cuboid_left_out = leave_one_out(cuboid, used, trajectory, camera, vehicle, plain, map_fn=map_fn)
         full_error = holdout_error(left_out, trajectory, camera, vehicle, model_params)
         cuboid_error = holdout_error(cuboid_left_out, trajectory, camera, vehicle, plain)
         # A cuboid that predicts the left-out boxes to within the floor leaves nothing for the template to
@@ -231,7 +226,7 @@ def final_fit(
             fit, model_params, left_out, templated = cuboid, plain, cuboid_left_out, False
             body = "the cuboid: the template predicts the left-out drive-pasts no better"
     # The left-out fits of the chosen class serve the traversal check too.
-    check = check_traversals(left_out, trajectory, camera, vehicle, model_params)
+    check = check_traversals(left_out, trajectory, camera, vehicle, model_params, map_fn)
     boxes = unbiased_boxes(np.concatenate([t.boxes for t in used]), fit.bias)
     footprints = model_footprints(fit, used, trajectory, vehicle)
     summary = delta_p(boxes, footprints, fit.R_cam_from_local, fit.t_cam_from_local, camera).summary()
@@ -275,19 +270,6 @@ def final_fit(
         shape_covariance=shape_covariance,
         body=body,
     )
-
-
-@dataclass(frozen=True, slots=True)
-class _LeaveOneOut:
-    """vehicle_model.leave_one_out with the shared arguments bound (module level: a pool pickles it)."""
-
-    tracks: Sequence[MatchedTrack]
-    trajectory: Trajectory
-    camera: CameraModel
-    vehicle: VehicleProfile
-
-    def __call__(self, fit: ModelFit, params: ModelParams) -> LeftOut:
-        return leave_one_out(fit, self.tracks, self.trajectory, self.camera, self.vehicle, params)
 
 
 def _recognised(

@@ -36,8 +36,9 @@ common GNSS offset; check_traversals then raises it to the scatter of the traver
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares, nnls
@@ -781,6 +782,35 @@ class LeftOut:
     fits: tuple[ModelFit | str, ...]
 
 
+MapFn = Callable[..., Iterable[Any]]
+
+
+@dataclass(frozen=True, slots=True)
+class _SubsetFit:
+    """fit_vehicle_model of a subset of the tracks, started from one fit (module level: a process pool's map
+    pickles it); the reason text when the subset cannot be fitted."""
+
+    start: ModelFit
+    trajectory: Trajectory
+    camera: CameraModel
+    vehicle: VehicleProfile
+    params: ModelParams
+
+    def __call__(self, tracks: Sequence[MatchedTrack]) -> ModelFit | str:
+        try:
+            return fit_vehicle_model(
+                self.start.R_cam_from_local,
+                self.start.t_cam_from_local,
+                tracks,
+                self.trajectory,
+                self.camera,
+                self.vehicle,
+                self.params,
+            )
+        except DegenerateGeometry as err:
+            return str(err)
+
+
 def leave_one_out(
     fit: ModelFit,
     tracks: Sequence[MatchedTrack],
@@ -789,25 +819,18 @@ def leave_one_out(
     vehicle: VehicleProfile,
     params: ModelParams,
     gap_s: float = 5.0,
+    map_fn: MapFn = map,
 ) -> LeftOut:
     """Fit the model class of `params` without each traversal in turn, started from `fit` (none with fewer
-    than 2 traversals). Shared by the choice of model class (holdout_error) and check_traversals."""
+    than 2 traversals). Shared by the choice of model class (holdout_error) and check_traversals. The fits
+    are independent: `map_fn` (e.g. a process pool's map) may run them side by side, with identical
+    results."""
     clusters = tuple(tuple(c) for c in _traversal_clusters(tracks, gap_s))
     if len(clusters) < 2:
         return LeftOut(fit, clusters, ())
-    quick = _quick(params)
-    fits: list[ModelFit | str] = []
-    for index in range(len(clusters)):
-        rest = [t for i, c in enumerate(clusters) if i != index for t in c]
-        try:
-            fits.append(
-                fit_vehicle_model(
-                    fit.R_cam_from_local, fit.t_cam_from_local, rest, trajectory, camera, vehicle, quick
-                )
-            )
-        except DegenerateGeometry as err:
-            fits.append(str(err))
-    return LeftOut(fit, clusters, tuple(fits))
+    rests = [[t for i, c in enumerate(clusters) if i != index for t in c] for index in range(len(clusters))]
+    fits = tuple(map_fn(_SubsetFit(fit, trajectory, camera, vehicle, _quick(params)), rests))
+    return LeftOut(fit, clusters, fits)
 
 
 def check_traversals(
@@ -816,8 +839,10 @@ def check_traversals(
     camera: CameraModel,
     vehicle: VehicleProfile,
     params: ModelParams,
+    map_fn: MapFn = map,
 ) -> TraversalCheck:
-    """Compare the full fit with each fit that leaves a traversal out (see TraversalCheck)."""
+    """Compare the full fit with each fit that leaves a traversal out (see TraversalCheck); `map_fn` runs
+    the two halves' fits (see _halves_disagree)."""
     fit, clusters = left_out.full, left_out.clusters
     if len(clusters) < 2:
         return TraversalCheck(len(clusters), None, 0.0, 0.0, "")
@@ -859,7 +884,7 @@ def check_traversals(
                 f"traversal {index + 1}'s boxes pull the others' pose by a chi-square of {pull:.0f} "
                 f"(6 dof) > {params.holdout_pull_chi2:.0f}"
             )
-    halves, difference = _halves_disagree(fit, clusters, trajectory, camera, vehicle, params)
+    halves, difference = _halves_disagree(fit, clusters, trajectory, camera, vehicle, params, map_fn)
     if halves:
         problems.append(halves)
     if difference is not None:
@@ -895,6 +920,7 @@ def _halves_disagree(
     camera: CameraModel,
     vehicle: VehicleProfile,
     params: ModelParams,
+    map_fn: MapFn = map,
 ) -> tuple[str, FloatArray | None]:
     """A camera knocked between drive-pasts: the earlier and the later half of the traversals (in time, at
     least 3 each) fitted apart must agree within the two fits' uncertainty (chi-square of the pose
@@ -907,19 +933,11 @@ def _halves_disagree(
     if len(clusters) < 6:
         return "", None
     middle = len(clusters) // 2
-    quick = _quick(params)
-    halves = []
-    for part in (clusters[:middle], clusters[middle:]):
-        tracks = [t for c in part for t in c]
-        try:
-            halves.append(
-                fit_vehicle_model(
-                    fit.R_cam_from_local, fit.t_cam_from_local, tracks, trajectory, camera, vehicle, quick
-                )
-            )
-        except DegenerateGeometry:
-            return "", None  # a half too weak to fit on its own says nothing about a move
+    parts = [[t for c in part for t in c] for part in (clusters[:middle], clusters[middle:])]
+    halves = list(map_fn(_SubsetFit(fit, trajectory, camera, vehicle, _quick(params)), parts))
     early, late = halves
+    if isinstance(early, str) or isinstance(late, str):
+        return "", None  # a half too weak to fit on its own says nothing about a move
     difference = _pose_difference(
         early.R_cam_from_local, early.camera_centre, late.R_cam_from_local, late.camera_centre
     )

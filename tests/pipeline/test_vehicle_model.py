@@ -326,6 +326,38 @@ def test_five_consistent_drive_pasts_agree(passes: int):
     assert check.disagreeing == ""
 
 
+def test_the_left_out_and_half_fits_run_in_a_process_pool_with_identical_results():
+    """Leaving each of six drive-pasts out and the two halves are independent fits: mapped over a pool of
+    two forked processes they give bit for bit the fits and the check of the serial run."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    trajectory, tracks = _five_passes(0.3, 0.0, seed=1, moved_from=3, passes=6)
+    params = ModelParams()
+    fit = fit_vehicle_model(*_start(2), tracks, trajectory, CAMERA, VEHICLE, params)
+    serial = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+    serial_check = check_traversals(serial, trajectory, CAMERA, VEHICLE, params)
+    calls: list[int] = []
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+
+        def pool_map(fn, items):
+            items = list(items)
+            calls.append(len(items))
+            return pool.map(fn, items)
+
+        pooled = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params, map_fn=pool_map)
+        pooled_check = check_traversals(pooled, trajectory, CAMERA, VEHICLE, params, pool_map)
+    assert calls == [6, 2]  # six left-out fits, then the two halves
+    assert len(pooled.fits) == len(serial.fits) == 6
+    for a, b in zip(pooled.fits, serial.fits, strict=True):
+        assert not isinstance(a, str) and not isinstance(b, str)
+        assert np.array_equal(a.R_cam_from_local, b.R_cam_from_local)
+        assert np.array_equal(a.camera_centre, b.camera_centre) and np.array_equal(a.covariance, b.covariance)
+    assert pooled_check.covariance is not None and serial_check.covariance is not None
+    assert np.array_equal(pooled_check.covariance, serial_check.covariance)
+    assert pooled_check.disagreeing == serial_check.disagreeing
+
+
 def test_too_few_edges_is_degenerate():
     trajectory, tracks = _scene()
     short = [MatchedTrack(0, tracks[0].stamps[:3], tracks[0].boxes[:3], tracks[0].poses[:3])]
