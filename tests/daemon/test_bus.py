@@ -132,18 +132,24 @@ def test_subscriptions_hand_detections_and_v2x_to_on_inbound_with_keys_intact(ru
         "rsu/r1/camera/unknown/detections": b"not even json",  # ingest rejects it, the bus does not judge
         "v2x/cam/42": b'{"station_id": 42}',
     }
-    running.client.put("rsu/r2/camera/c1/detections", b"another RSU's camera")  # not subscribed
-    running.client.put("rsu/r1/camera/c1/calibration", b"our own output")  # not subscribed
+    running.client.put(
+        "rsu/r2/camera/c1/detections",
+        b"another RSU's camera",
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )  # not subscribed
+    running.client.put(
+        "rsu/r1/camera/c1/calibration", b"our own output", congestion_control=zenoh.CongestionControl.BLOCK
+    )  # not subscribed
     for key, payload in sent.items():
-        running.client.put(key, payload)
+        running.client.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
     wait_until(lambda: len(running.stub.inbound) >= len(sent), timeout_s=5)
     assert sorted(running.stub.inbound) == sorted((k, p, RECEIVED_NS) for k, p in sent.items())
 
 
 def test_an_on_inbound_failure_is_counted_and_the_next_sample_still_arrives(running: Running) -> None:
     running.stub.inbound_fail_next = True
-    running.client.put("v2x/cam/1", b"first")
-    running.client.put("v2x/cam/2", b"second")
+    running.client.put("v2x/cam/1", b"first", congestion_control=zenoh.CongestionControl.BLOCK)
+    running.client.put("v2x/cam/2", b"second", congestion_control=zenoh.CongestionControl.BLOCK)
     wait_until(lambda: running.stub.inbound, timeout_s=5)
     assert running.stub.inbound == [("v2x/cam/2", b"second", RECEIVED_NS)]
     assert running.bus.callback_errors == 1
