@@ -651,6 +651,11 @@ NIGHT = replace(
 )
 SUV = replace(SIL_WEST, name="suv", bodies=BodySpec(calibration_types=("suv",)))
 VAN = replace(SIL_NORTH, name="van", bodies=BodySpec(calibration_types=("van",)))
+# Calibration vehicles no other preset drives, whose shapes the method's template knows least: a pickup (its
+# open bed behind a tall cab), a rigid box truck and a city bus (buses broadcast CAMs too).
+PICKUP = replace(SIL_SOUTH, name="pickup", bodies=BodySpec(calibration_types=("pickup",)))
+TRUCK = replace(SIL_NORTH, name="truck", bodies=BodySpec(calibration_types=("truck",)))
+BUS = replace(SIL_WEST, name="bus", bodies=BodySpec(calibration_types=("bus",)))
 RTK_FLOAT = replace(SIL_SOUTH, name="rtk-float", v2x=V2xSpec(rtk_float=True))
 # A junction on a real road: a pronounced crown (2.5 %), banked bends (5 %), a crest on the west arm and a
 # sag on the south arm in front of the camera, on sloping terrain.
@@ -785,6 +790,9 @@ PRESETS: dict[str, ScenarioConfig] = {
         NIGHT,
         SUV,
         VAN,
+        PICKUP,
+        TRUCK,
+        BUS,
         RTK_FLOAT,
         CROWNED_ROAD,
         MOVED_CAMERA,
