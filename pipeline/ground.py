@@ -26,7 +26,7 @@ class GroundPlaneFit:
         denom = directions @ self.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             s = (self.offset - origin @ self.normal) / denom
-        hits = origin + s[:, None] * directions
+            hits = origin + s[:, None] * directions  # a ray along the plane: inf * 0, NaN, dropped below
         hits[~(s > 0)] = np.nan
         return np.asarray(hits, dtype=np.float64)
 
