@@ -18,7 +18,7 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
-MapFn = Callable[..., Iterable[Any]]
+from pipeline.mapping import MapFn
 
 _PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 

@@ -45,10 +45,10 @@ from pipeline.hypotheses import (
     Hypothesis,
     HypothesisParams,
     HypothesisSet,
-    MapFn,
     create_hypotheses,
     shows_vehicle,
 )
+from pipeline.mapping import MapFn
 from pipeline.refinement import RefinementParams
 from pipeline.result import SOFTWARE_VERSION, calibration_result, refused_result
 from pipeline.selection import (

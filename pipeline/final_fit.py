@@ -4,15 +4,15 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
 from pipeline.arrays import FloatArray
 from pipeline.association import MatchedTrack, apart_in_time, track_spans
 from pipeline.errors import DegenerateGeometry
+from pipeline.mapping import MapFn
 from pipeline.metrics import delta_p
 from pipeline.selection import Candidate, Scene, fits_as_well
 from pipeline.stage import StageReport
@@ -177,7 +177,7 @@ def final_fit(
     scene: Scene,
     model: ModelParams,
     template_gain: float,
-    map_fn: Callable[..., Iterable[Any]] = map,
+    map_fn: MapFn = map,
 ) -> FinalFit:
     """The final fit from its first part (joint_fit): the model class, then each traversal left out in turn;
     `template_gain`: the template and detector convention replace the cuboid only when their cross-validated

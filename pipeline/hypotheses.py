@@ -12,9 +12,8 @@ Input: `MatchedTrack`s (`pipeline.association.match_tracks`); output: a `Hypothe
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import cv2
 import numpy as np
@@ -29,6 +28,7 @@ from pipeline.camera import (
     rvec_from_rotation,
 )
 from pipeline.ground import GroundPlaneFit
+from pipeline.mapping import MapFn
 from pipeline.stage import Reason
 from pipeline.straight_track import (
     StraightTrackParams,
@@ -43,10 +43,6 @@ from schemas.common import VehicleProfile
 # LM runs until the step is negligible: EPnP and SQPnP undistort with OpenCV's approximate inverse and
 # leave ~1e-3 px on exact barrel-distorted data, LM projects forward and reaches ~1e-9 px.
 _LM_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-12)
-
-
-# map(fn, *iterables) or a drop-in replacement (e.g. ProcessPoolExecutor.map) for per-track work.
-MapFn = Callable[..., Iterable[Any]]
 
 
 @dataclass(frozen=True, slots=True)

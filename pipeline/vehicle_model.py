@@ -36,9 +36,8 @@ common GNSS offset; check_traversals then raises it to the scatter of the traver
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares, nnls
@@ -47,6 +46,7 @@ from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, St
 from pipeline.association import MatchedTrack, Trajectory, select_rows
 from pipeline.camera import CameraModel, camera_centre, rotation_from_ypr, rvec_from_rotation
 from pipeline.errors import DegenerateGeometry
+from pipeline.mapping import MapFn
 from pipeline.refinement import (
     _camera_points,
     _camera_points_jacobian,
@@ -780,9 +780,6 @@ class LeftOut:
     full: ModelFit
     clusters: tuple[tuple[MatchedTrack, ...], ...]
     fits: tuple[ModelFit | str, ...]
-
-
-MapFn = Callable[..., Iterable[Any]]
 
 
 @dataclass(frozen=True, slots=True)
