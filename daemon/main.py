@@ -55,6 +55,7 @@ from daemon.traversals import (
     coverage_from_config,
     coverage_from_result,
 )
+from pipeline.camera import lens_model_note
 from pipeline.frames import UtmFrame, utm_epsg_for
 from schemas.config import DaemonConfig
 from schemas.messages import V2xPosition
@@ -290,6 +291,9 @@ class Daemon:
         now_ns = self.clock.now_ns()
         for camera in self.config.cameras:
             camera_id = camera.camera_id
+            lens = lens_model_note(camera.intrinsics)
+            if lens is not None:
+                log.warning("camera %s: %s", camera_id, lens)
             current = self.store.load_current(camera_id)
             state = self.store.load_camera_state(camera_id) or CameraState()
             if current is not None and state.current_result_id != current.result_id:

@@ -14,7 +14,7 @@ import re
 import sys
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, TextIO
@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from daemon.keys import v2x_key
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
+from pipeline.camera import lens_model_note
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
 from pipeline.loaders import (
@@ -117,10 +118,18 @@ def load_offline_inputs(
     )
     vehicle = load_vehicle(Path(vehicle_path))
 
+    lens = lens_model_note(intrinsics)
+    # Named by the camera file (a result's intrinsics: by the field alone).
+    lens_notes = (
+        []
+        if lens is None
+        else [lens if isinstance(camera_path, CameraIntrinsics) else f"{camera_path}: {lens}"]
+    )
     if mcap_path is not None:
-        return _from_mcap(Path(mcap_path), intrinsics, vehicle, camera_id, station_id, crs, time_offset_ns)
+        loaded = _from_mcap(Path(mcap_path), intrinsics, vehicle, camera_id, station_id, crs, time_offset_ns)
+        return replace(loaded, notes=(*lens_notes, *loaded.notes))
     assert detections_path is not None and poses_path is not None
-    notes: list[str] = []
+    notes: list[str] = lens_notes
     if frame == "local" and shift is None:
         crs = LOCAL_CRS
         notes.append("poses in a local metric frame: the result stays in it, without lat/lon")

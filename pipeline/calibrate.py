@@ -291,9 +291,11 @@ def _calibrate(
     say("tracking", 0.1)
     if tracked.track_set is None:
         tracked.frames = frames_from_detections(inputs.detections)
-        tracked.track_set = track_boxes(tracked.frames, camera.width, camera.height, params.tracking)
+        tracked.track_set = track_boxes(
+            tracked.frames, camera.width, camera.height, params.tracking, camera.beyond_model
+        )
     frames, track_set = tracked.frames, tracked.track_set
-    report.append(_tracking_report(frames, track_set))
+    report.append(_tracking_report(frames, track_set, camera))
     matched = match_tracks(track_set.tracks, trajectory, association)
     report.append(_association_report(matched, track_set))
     if not matched:
@@ -513,17 +515,19 @@ def _focused(
     return kept
 
 
-def _tracking_report(frames: Sequence[FrameBoxes], track_set: TrackSet) -> StageReport:
-    dropped = track_set.border_boxes_dropped
-    return StageReport(
-        "tracking",
-        len(track_set.tracks),
-        dropped,
-        (
-            f"{len(frames)} frames, {sum(len(f.boxes) for f in frames)} boxes, "
-            f"{dropped} boxes touching the border dropped",
-        ),
-    )
+def _tracking_report(frames: Sequence[FrameBoxes], track_set: TrackSet, camera: CameraModel) -> StageReport:
+    dropped, lens = track_set.border_boxes_dropped, track_set.lens_boxes_dropped
+    notes = [
+        f"{len(frames)} frames, {sum(len(f.boxes) for f in frames)} boxes, "
+        f"{dropped - lens} boxes touching the border dropped"
+    ]
+    if lens:
+        notes.append(
+            f"{lens} boxes reaching beyond {camera.model_limit_px():.0f} px from the principal point "
+            "dropped: there the lens model's distortion turns back (camera intrinsics `dist`), so no pose "
+            "can be fitted to them; refit the intrinsics to use the whole image"
+        )
+    return StageReport("tracking", len(track_set.tracks), dropped, tuple(notes))
 
 
 def _association_report(matched: Sequence[MatchedTrack], track_set: TrackSet) -> StageReport:

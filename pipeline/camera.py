@@ -13,8 +13,17 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from pipeline.arrays import FloatArray, Pixels, Points3, Rotation, Vec3, check_shape
+from pipeline.arrays import FloatArray, Mask, Pixels, Points3, Rotation, Vec3, check_shape
 from schemas.common import CameraIntrinsics
+
+# How far out the lens model is used: to the distorted radius where its radial magnification (d rho / d r,
+# distorted over undistorted normalised radius, 1 at the centre) has fallen to this. A fitted polynomial
+# (k1 < 0 with k2, k3) can turn back inside the image, where two directions share a pixel and no pixel beyond
+# the turn can be undistorted at all; near the turn a pixel of noise is ten of the model's. A physical lens
+# stays well above it: an equidistant fisheye (rho = theta) falls to 0.1 only 72 deg off axis.
+MIN_RADIAL_MAGNIFICATION = 0.1
+# No image reaches further than this undistorted normalised radius (84 deg off axis).
+MAX_MODEL_RADIUS = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -28,9 +37,26 @@ class CameraModel:
     # Whether any distortion coefficient is non-zero; fixed at construction (asked at every projection in
     # the solvers' inner loops).
     has_distortion: bool = field(init=False, repr=False, compare=False)
+    # The distorted normalised radius out to which the lens model holds (`model_radius_limit`); inf for a
+    # model that never turns back.
+    radius_limit: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "has_distortion", bool(np.any(np.asarray(self.dist) != 0.0)))
+        object.__setattr__(self, "radius_limit", model_radius_limit(np.asarray(self.dist, dtype=np.float64)))
+
+    def beyond_model(self, pixels: Pixels) -> Mask:
+        """Pixels (N, 2) beyond the radius the lens model holds to (`radius_limit`): (N,)."""
+        check_shape(pixels, "N,2", name="pixels")
+        if math.isinf(self.radius_limit):
+            return np.zeros(len(pixels), dtype=np.bool_)
+        rho = np.hypot(*_normalised(pixels, self.K).T)
+        return np.asarray(rho > self.radius_limit, dtype=np.bool_)
+
+    def model_limit_px(self) -> float:
+        """The radius (px along x from the principal point) out to which the lens model holds; inf if it
+        always does. For messages."""
+        return self.radius_limit * float(self.K[0, 0])
 
     @staticmethod
     def from_intrinsics(intrinsics: CameraIntrinsics) -> CameraModel:
@@ -40,6 +66,50 @@ class CameraModel:
         return CameraModel(
             K, np.array(intrinsics.dist, dtype=np.float64), intrinsics.width, intrinsics.height
         )
+
+
+def lens_model_note(intrinsics: CameraIntrinsics) -> str | None:
+    """A warning when the lens model turns back inside the image (`model_radius_limit`), else None."""
+    camera = CameraModel.from_intrinsics(intrinsics)
+    corners = np.array(
+        [[0.0, 0.0], [intrinsics.width, 0.0], [0.0, intrinsics.height], [intrinsics.width, intrinsics.height]]
+    )
+    beyond = camera.beyond_model(corners)
+    if not beyond.any():
+        return None
+    corner_px = float(np.max(np.hypot(corners[:, 0] - intrinsics.cx, corners[:, 1] - intrinsics.cy)))
+    return (
+        f"dist: the distortion turns back {camera.model_limit_px():.0f} px from the principal point, inside "
+        f"the image (its farthest corner is {corner_px:.0f} px away): boxes reaching beyond are not used; "
+        "refit the intrinsics to use the whole image"
+    )
+
+
+def model_radius_limit(dist: FloatArray) -> float:
+    """The distorted normalised radius rho out to which the radial model rho = r (1 + k1 r^2 + k2 r^4 +
+    k3 r^6) is used: where d rho / d r first falls to MIN_RADIAL_MAGNIFICATION, searched out to
+    MAX_MODEL_RADIUS (inf if it never does). The tangential terms (p1, p2: a few thousandths) are left out."""
+    k1, k2, k3 = float(dist[0]), float(dist[1]), float(dist[4])
+
+    def slope(r: FloatArray) -> FloatArray:
+        u = r * r
+        return np.asarray(1.0 + u * (3.0 * k1 + u * (5.0 * k2 + u * 7.0 * k3)))
+
+    # A scan, then bisection: robust for any coefficients (a root finder on the cubic overflows when the
+    # leading coefficient is tiny) and cheap (once per camera).
+    r = np.linspace(0.0, MAX_MODEL_RADIUS, 10001)
+    low = np.flatnonzero(slope(r) <= MIN_RADIAL_MAGNIFICATION)
+    if len(low) == 0:
+        return math.inf
+    a, b = float(r[low[0] - 1]), float(r[low[0]])  # slope(0) = 1: low[0] >= 1
+    for _ in range(60):
+        mid = 0.5 * (a + b)
+        if float(slope(np.array(mid))) <= MIN_RADIAL_MAGNIFICATION:
+            b = mid
+        else:
+            a = mid
+    u = b * b
+    return b * (1.0 + u * (k1 + u * (k2 + u * k3)))
 
 
 def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
@@ -91,18 +161,22 @@ def undistort_pixels(pixels: Pixels, camera: CameraModel) -> FloatArray:
     check_shape(pixels, "N,2", name="pixels")
     if len(pixels) == 0:
         return np.zeros((0, 2))
-    K = camera.K
-    # Inverse of K including its skew K[0, 1], as project_points_cam applies it.
-    target = np.stack(
+    target = _normalised(pixels, camera.K)
+    if not camera.has_distortion:
+        return target
+    return _invert_distortion(target, camera.dist)
+
+
+def _normalised(pixels: Pixels, K: FloatArray) -> FloatArray:
+    """Pixels (N, 2) -> distorted normalised coordinates (N, 2): the inverse of K including its skew K[0, 1],
+    as project_points_cam applies it."""
+    return np.stack(
         [
             (pixels[:, 0] - K[0, 2] - K[0, 1] * (pixels[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
             (pixels[:, 1] - K[1, 2]) / K[1, 1],
         ],
         axis=1,
     )
-    if not camera.has_distortion:
-        return target
-    return _invert_distortion(target, camera.dist)
 
 
 def _invert_distortion(xy_distorted: FloatArray, dist: FloatArray) -> FloatArray:

@@ -8,13 +8,13 @@ constant box velocity used to predict where a track's box should be in the next 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from pipeline.arrays import Boxes, FloatArray, IntArray, Mask, Stamps, check_shape
+from pipeline.arrays import Boxes, FloatArray, IntArray, Mask, Pixels, Stamps, check_shape
 from pipeline.errors import InputError, ShapeError
 from pipeline.tables import DetectionTable
 from schemas.common import toolbox_class_id
@@ -66,6 +66,8 @@ class ImageTrack:
 class TrackSet:
     tracks: tuple[ImageTrack, ...]  # sorted by track_id (0, 1, ... in order of first appearance)
     border_boxes_dropped: int  # boxes that took part in tracking but are absent from the output
+    # ... of them, those reaching beyond the radius the lens model holds to (CameraModel.beyond_model)
+    lens_boxes_dropped: int = 0
 
 
 def frames_from_detections(frames: Sequence[DetectionFrame]) -> list[FrameBoxes]:
@@ -166,7 +168,13 @@ def _check_frames(frames: Sequence[FrameBoxes]) -> None:
         previous_ns = frame.stamp_ns
 
 
-def track_boxes(frames: Sequence[FrameBoxes], width: int, height: int, params: TrackingParams) -> TrackSet:
+def track_boxes(
+    frames: Sequence[FrameBoxes],
+    width: int,
+    height: int,
+    params: TrackingParams,
+    beyond_lens: Callable[[Pixels], Mask] | None = None,
+) -> TrackSet:
     """Track boxes through an image sequence offline (paper III-C, Eq. 2).
 
     frames: strictly increasing stamps (ns, camera clock), boxes in px; width, height: image size (px).
@@ -181,9 +189,11 @@ def track_boxes(frames: Sequence[FrameBoxes], width: int, height: int, params: T
 
     Border boxes (within `border_margin_px` of an edge) DO take part in association, so a vehicle entering
     or leaving the image keeps one track, but are left out of every output track (their clipped geometry
-    would corrupt the 2D-3D correspondences) and counted in `border_boxes_dropped`. Tracks with no box
-    left are not output. Track ids are renumbered 0, 1, ... in order of first appearance. Classes do not
-    gate association: detectors flicker between car, van and truck on the same vehicle.
+    would corrupt the 2D-3D correspondences) and counted in `border_boxes_dropped`; so are boxes with a
+    corner where `beyond_lens` (CameraModel.beyond_model) says the lens model no longer holds (counted in
+    `lens_boxes_dropped` as well). Tracks with no box left are not output. Track ids are renumbered 0, 1,
+    ... in order of first appearance. Classes do not gate association: detectors flicker between car, van
+    and truck on the same vehicle.
     """
     _check_frames(frames)
     counts = np.array([len(frame.boxes) for frame in frames], dtype=np.int64)
@@ -247,7 +257,7 @@ def track_boxes(frames: Sequence[FrameBoxes], width: int, height: int, params: T
             active_ids = np.concatenate([active_ids, new_ids])
             state = np.concatenate([state, new_state])
 
-    return _collect_tracks(frames, counts, track_of_box, width, height, params.border_margin_px)
+    return _collect_tracks(frames, counts, track_of_box, width, height, params.border_margin_px, beyond_lens)
 
 
 def _keep_min_size(boxes: Boxes) -> Boxes:
@@ -264,18 +274,26 @@ def _collect_tracks(
     width: int,
     height: int,
     margin_px: float,
+    beyond_lens: Callable[[Pixels], Mask] | None,
 ) -> TrackSet:
-    """Group every input box by its track in one pass, drop border boxes, renumber the survivors."""
+    """Group every input box by its track in one pass, drop border boxes and those beyond the lens model,
+    renumber the survivors."""
     if len(track_of_box) == 0:
         return TrackSet(tracks=(), border_boxes_dropped=0)
     all_boxes = np.concatenate([frame.boxes for frame in frames])
     all_classes = np.concatenate([frame.classes for frame in frames]).astype(np.int64)
     all_stamps = np.repeat(np.array([frame.stamp_ns for frame in frames], dtype=np.int64), counts)
     is_border = touches_border(all_boxes, width, height, margin_px)
+    lens_count = 0
+    if beyond_lens is not None:
+        corners = all_boxes[:, [0, 1, 2, 1, 0, 3, 2, 3]].reshape(-1, 2)
+        is_beyond = beyond_lens(corners).reshape(-1, 4).any(axis=1)
+        lens_count = int(np.count_nonzero(is_beyond & ~is_border))
+        is_border |= is_beyond
     border_count = int(np.count_nonzero(is_border))
     kept = np.flatnonzero(~is_border)
     if len(kept) == 0:
-        return TrackSet(tracks=(), border_boxes_dropped=border_count)
+        return TrackSet(tracks=(), border_boxes_dropped=border_count, lens_boxes_dropped=lens_count)
     # Stable sort by track keeps each track's boxes in frame order; internal ids already follow first
     # appearance, so renumbering the surviving ids densely preserves that order.
     kept = kept[np.argsort(track_of_box[kept], kind="stable")]
@@ -291,4 +309,4 @@ def _collect_tracks(
         )
         for number, (start, end) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True))
     )
-    return TrackSet(tracks=tracks, border_boxes_dropped=border_count)
+    return TrackSet(tracks=tracks, border_boxes_dropped=border_count, lens_boxes_dropped=lens_count)

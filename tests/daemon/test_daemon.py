@@ -9,6 +9,7 @@ seconds. Every wait polls with a deadline.
 from __future__ import annotations
 
 import json
+import logging
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -329,6 +330,24 @@ def test_a_dead_thread_stops_the_daemon_with_its_reason(sim: SimulationResult, t
         assert daemon.wait(timeout_s=5)  # the stop event is set
     finally:
         daemon.stop()
+
+
+def test_a_lens_model_that_turns_back_inside_the_image_is_warned_at_start(
+    sim: SimulationResult, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    config = _config(sim, tmp_path / "state")
+    turning = config.cameras[0].intrinsics.model_copy(
+        update={"fx": 900.0, "fy": 900.0, "dist": (-0.30, 0.09, 0.0005, -0.0004, -0.012)}
+    )
+    cameras = [config.cameras[0].model_copy(update={"intrinsics": turning}), *config.cameras[1:]]
+    caplog.set_level(logging.WARNING, logger="daemon.main")
+    daemon = Daemon(config.model_copy(update={"cameras": cameras}))
+    try:
+        daemon.start()
+    finally:
+        daemon.stop()
+    warned = [r.getMessage() for r in caplog.records if "distortion turns back" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith(f"camera {config.cameras[0].camera_id}: dist: "), warned
 
 
 def test_kill_9_leaves_a_readable_recording_and_the_restart_keeps_the_count(

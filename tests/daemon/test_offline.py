@@ -127,6 +127,32 @@ def test_explicit_crs_is_normalised_and_checked(site: Path) -> None:
             load_offline_inputs(site / "cam_north.yaml", site / "vehicle.yaml", mcap_path=mcap, crs=crs)
 
 
+def test_a_lens_model_that_turns_back_inside_the_image_is_said_first(site: Path) -> None:
+    # fx 900 on 1920 x 1080 with a polynomial that turns back at 913 px (the corners lie 1101 px out).
+    turning = site / "turning.yaml"
+    turning.write_text(
+        CAMERA_YAML.replace("1000.0", "900.0") + "dist: [-0.30, 0.09, 0.0005, -0.0004, -0.012]\n"
+    )
+    mcap = _write_mcap(site / "rec.mcap")
+    loaded = load_offline_inputs(turning, site / "vehicle.yaml", mcap_path=mcap, crs="EPSG:32632")
+    assert loaded.notes == (
+        f"{turning}: dist: the distortion turns back 913 px from the principal point, inside the image (its "
+        "farthest corner is 1101 px away): boxes reaching beyond are not used; refit the intrinsics to use "
+        "the whole image",
+    )
+    detections, poses = _write_pair(site)
+    pair = load_offline_inputs(turning, site / "vehicle.yaml", detections_path=detections, poses_path=poses)
+    assert pair.notes[0].startswith(f"{turning}: dist: the distortion turns back 913 px")
+    # A physical strong barrel lens, and no distortion at all, are said nothing about.
+    physical = site / "barrel.yaml"
+    physical.write_text(
+        CAMERA_YAML.replace("1000.0", "900.0") + "dist: [-0.25, 0.06, 0.0005, -0.0004, 0.0]\n"
+    )
+    for camera in (physical, site / "cam_north.yaml"):
+        plain = load_offline_inputs(camera, site / "vehicle.yaml", mcap_path=mcap, crs="EPSG:32632")
+        assert plain.notes == ()
+
+
 # ---------------------------------------------------------------------------------------------- YAML pair
 
 

@@ -14,10 +14,13 @@ from scipy.spatial.transform import Rotation as SciRotation
 
 from pipeline.arrays import FloatArray
 from pipeline.camera import (
+    MAX_MODEL_RADIUS,
+    MIN_RADIAL_MAGNIFICATION,
     CameraModel,
     camera_centre,
     camera_rotation_from_view,
     distort_normalized,
+    model_radius_limit,
     project_points,
     project_points_cam,
     quaternion_wxyz_from_rotation,
@@ -202,6 +205,75 @@ def test_undistort_with_skew_inverts_projection() -> None:
         camera = CameraModel(K, dist, 1280, 720)
         pixels = project_points_cam(np.hstack([xy, np.ones((3, 1))]), camera)
         np.testing.assert_allclose(undistort_pixels(pixels, camera), xy, atol=1e-12)
+
+
+# --- where the lens model holds --------------------------------------------------------------------------
+
+
+def radial_slope(dist: FloatArray, r: FloatArray) -> FloatArray:
+    """d rho / d r of rho = r (1 + k1 r^2 + k2 r^4 + k3 r^6)."""
+    k1, k2, _, _, k3 = dist
+    return np.asarray(1.0 + 3.0 * k1 * r**2 + 5.0 * k2 * r**4 + 7.0 * k3 * r**6)
+
+
+def radial(dist: FloatArray, r: FloatArray) -> FloatArray:
+    k1, k2, _, _, k3 = dist
+    return np.asarray(r * (1.0 + k1 * r**2 + k2 * r**4 + k3 * r**6))
+
+
+@settings(max_examples=200, deadline=None)
+@given(camera=cameras())
+def test_radius_limit_is_where_the_radial_slope_reaches_its_floor(camera: CameraModel) -> None:
+    limit = camera.radius_limit
+    r = np.linspace(0.0, MAX_MODEL_RADIUS, 100001)
+    slope = radial_slope(camera.dist, r)
+    below = np.flatnonzero(slope <= MIN_RADIAL_MAGNIFICATION)
+    if math.isinf(limit):
+        assert len(below) == 0
+        return
+    # The first radius where the slope falls to the floor, found by a dense scan, maps to the limit.
+    assert len(below) > 0
+    r_floor = r[below[0]]
+    assert radial(camera.dist, np.array(r_floor)) == pytest.approx(limit, abs=2e-4 * max(1.0, limit))
+
+
+def test_radius_limit_of_lenses_with_and_without_a_turn() -> None:
+    assert model_radius_limit(np.zeros(5)) == math.inf
+    # A strong but physical barrel lens never turns back; pincushion never does.
+    assert model_radius_limit(np.array([-0.25, 0.06, 0.0005, -0.0004, 0.0])) == math.inf
+    assert model_radius_limit(np.array([0.2, 0.0, 0.0, 0.0, 0.0])) == math.inf
+    # k1 alone: slope 1 + 3 k1 r^2 = 0.1 at r^2 = 0.9 / (-3 k1); rho = r (1 + k1 r^2).
+    r2 = 0.9 / 0.9
+    assert model_radius_limit(np.array([-0.3, 0.0, 0.0, 0.0, 0.0])) == pytest.approx(
+        math.sqrt(r2) * (1.0 - 0.3 * r2)
+    )
+
+
+def test_a_fitted_polynomial_that_turns_back_inside_the_image_is_flagged_there_only() -> None:
+    # fx 900 on 1920 x 1080: the corners lie at rho 1.22; this polynomial turns back at rho 1.01.
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(
+            width=1920, height=1080, fx=900.0, fy=900.0, cx=960.0, cy=540.0,
+            dist=(-0.30, 0.09, 0.0005, -0.0004, -0.012),
+        )
+    )  # fmt: skip
+    assert 1.0 < camera.radius_limit < math.hypot(960.0, 540.0) / 900.0
+    pixels = np.array([[960.0, 540.0], [1800.0, 540.0], [1919.0, 1079.0], [0.0, 0.0], [960.0, 1079.0]])
+    np.testing.assert_array_equal(camera.beyond_model(pixels), [False, False, True, True, False])
+    assert camera.model_limit_px() == pytest.approx(900.0 * camera.radius_limit)
+    # Inside the limit every pixel undistorts and reprojects exactly; beyond it the model cannot reach the
+    # corner at all (no undistorted point projects there).
+    inside = np.array([[960.0 + 0.99 * camera.model_limit_px(), 540.0], [1500.0, 900.0]])
+    xy = undistort_pixels(inside, camera)
+    reprojected = project_points_cam(np.hstack([xy, np.ones((len(xy), 1))]), camera)
+    np.testing.assert_allclose(reprojected, inside, rtol=0, atol=1e-6)
+    r = np.linspace(0.0, 5.0, 50001)
+    assert radial(camera.dist, r).max() < math.hypot(960.0, 540.0) / 900.0
+
+
+def test_a_lens_that_never_turns_back_flags_no_pixel() -> None:
+    camera = CameraModel(np.array([[900.0, 0, 960], [0, 900, 540], [0, 0, 1]]), np.zeros(5), 1920, 1080)
+    assert not camera.beyond_model(np.array([[-1e6, -1e6], [0.0, 0.0]])).any()
 
 
 def test_undistort_of_no_pixels() -> None:

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.arrays import FloatArray
+from pipeline.camera import CameraModel
 from pipeline.errors import InputError, ShapeError
 from pipeline.tracking import (
     FrameBoxes,
@@ -18,7 +19,7 @@ from pipeline.tracking import (
     overlap_terms,
     track_boxes,
 )
-from schemas.common import Box
+from schemas.common import Box, CameraIntrinsics
 from schemas.messages import DetectionFrame
 
 WIDTH, HEIGHT = 1920, 1200
@@ -371,6 +372,29 @@ def test_every_box_is_output_once_or_counted_as_border(
     assert set(outputs) <= inputs
     for track in result.tracks:
         assert np.all(np.diff(track.stamps) > 0)
+
+
+def test_boxes_beyond_the_lens_model_keep_the_track_but_are_not_output() -> None:
+    # A lens model that turns back at rho 1.01 (fx 900, principal point at the centre: 909 px out).
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(
+            width=WIDTH, height=HEIGHT, fx=900.0, fy=900.0, cx=WIDTH / 2, cy=HEIGHT / 2,
+            dist=(-0.30, 0.09, 0.0005, -0.0004, -0.012),
+        )
+    )  # fmt: skip
+    # One vehicle driving from the centre towards the top-right corner, 40 px per frame.
+    per_frame = [[_box(1000 + 40 * k, 650 - 20 * k, 80, 60)] for k in range(20)]
+    frames = _frames(per_frame)
+    corners = np.array([[b[0][x], b[0][y]] for b in per_frame for x, y in ((0, 1), (2, 1), (0, 3), (2, 3))])
+    beyond = camera.beyond_model(corners).reshape(-1, 4).any(axis=1)
+    assert 0 < beyond.sum() < len(per_frame)  # the drive crosses the limit inside the image
+    plain = _track(frames)
+    result = track_boxes(frames, WIDTH, HEIGHT, TrackingParams(), camera.beyond_model)
+    assert plain.border_boxes_dropped == 0 and plain.lens_boxes_dropped == 0
+    assert result.lens_boxes_dropped == result.border_boxes_dropped == int(beyond.sum())
+    # One track all the same (the dropped boxes took part in association), holding exactly the boxes inside.
+    assert len(result.tracks) == 1
+    np.testing.assert_array_equal(result.tracks[0].boxes, plain.tracks[0].boxes[~beyond])
 
 
 def test_empty_input_and_validation() -> None:

@@ -10,6 +10,7 @@ are in the comments.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import cache
 
 import numpy as np
@@ -18,7 +19,8 @@ import pytest
 from daemon.offline import inputs_from_simulation as calibration_inputs
 from pipeline.calibrate import CalibrationOutcome, PipelineParams, calibrate
 from pipeline.metrics import Evaluation, evaluate_against_ground_truth
-from sim.simulate import simulate
+from sim.presets import look_at
+from sim.simulate import resolve_config, simulate
 
 CREATED_AT_NS = 1_700_000_000_000_000_000  # the result's creation time: the caller's clock
 
@@ -116,6 +118,25 @@ def test_boxes_that_reject_the_cuboid_body_are_fitted_with_the_template() -> Non
     outcome, evaluation, _ = _run("van", 0, 0)
     notes = _stage_notes(outcome, "final fit")
     assert "body the template: the boxes reject the cuboid body" in notes, notes
+    _assert_right_or_refused(outcome, evaluation)
+
+
+def test_boxes_beyond_where_the_lens_model_turns_back_are_dropped_and_said() -> None:
+    # A fitted distortion polynomial that turns back inside the image (fx 900 on 1920 x 1080: the corners at
+    # normalised radius 1.22, the turn at 1.01) on sil-south's far camera. Seed 0 at the time of writing:
+    # 407 boxes dropped, refused on its position std (0.25 m), 0.21 m / 0.21 deg off.
+    camera = look_at(
+        "south", -38.0, -37.0, 14.0, (4.0, 6.0), width=1920, height=1080, fx=900.0,
+        dist=(-0.30, 0.09, 0.0005, -0.0004, -0.012),
+    )  # fmt: skip
+    sim = simulate(replace(resolve_config("sil-south"), name="sil-south-turning-lens", cameras=(camera,)), 0)
+    inputs = calibration_inputs(sim, "south")
+    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0), created_at_ns=CREATED_AT_NS)
+    notes = _stage_notes(outcome, "tracking")
+    assert "px from the principal point dropped: there the lens model's distortion turns back" in notes, notes
+    tracking = next(s for s in outcome.stages if s.stage == "tracking")
+    assert tracking.discarded > 0
+    evaluation = evaluate_against_ground_truth(outcome.result, sim.ground_truth["south"])
     _assert_right_or_refused(outcome, evaluation)
 
 
