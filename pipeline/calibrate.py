@@ -49,6 +49,7 @@ from pipeline.hypotheses import (
     shows_vehicle,
 )
 from pipeline.mapping import MapFn
+from pipeline.pairs import PairParams, corroborated_pairs, straight_tracks
 from pipeline.refinement import RefinementParams
 from pipeline.result import SOFTWARE_VERSION, calibration_result, refused_result
 from pipeline.selection import (
@@ -128,6 +129,9 @@ class PipelineParams:
     # clock; calibrate._focused); None fits every track again.
     focus_reach: float | None = 1.0
     clock: ClockParams = field(default_factory=ClockParams)
+    # When no two hypotheses agree: pairs of straight tracks solved as one (pipeline.pairs).
+    pair_straight_tracks: bool = True
+    pairs: PairParams = field(default_factory=PairParams)
     # The template and detector convention replace the cuboid only when their cross-validated misfit is
     # below this share of the cuboid's (simpler wins ties).
     template_gain: float = 0.9
@@ -337,6 +341,25 @@ def _calibrate(
     if not groups:
         groups, regrouping = regroup(hypothesis_set.hypotheses, scene)
         report.append(regrouping)
+    starts = None
+    if not groups and params.pair_straight_tracks:
+        straight = straight_tracks(matched, hypothesis_set.rejected, hypothesis_set.hypotheses)
+        unions, paired = corroborated_pairs(
+            straight,
+            matched,
+            camera,
+            inputs.vehicle,
+            ground,
+            trajectory,
+            params.hypotheses,
+            params.pairs,
+            params.clock,
+        )
+        report.append(paired)
+        groups = [u.track_ids for u in unions]
+        starts = [u.hypotheses() for u in unions]
+        solved = tuple(h for own in starts for h in own)
+        hypothesis_set = replace(hypothesis_set, hypotheses=(*hypothesis_set.hypotheses, *solved))
     if not groups:
         return refuse(
             "no two hypotheses agree: the calibration vehicle was not seen on two separate traversals",
@@ -344,7 +367,7 @@ def _calibrate(
         )
     diagnostics = replace(diagnostics, groups=tuple(tuple(g) for g in groups))
 
-    candidates, refinement = refine_groups(groups, hypothesis_set.hypotheses, scene, say)
+    candidates, refinement = refine_groups(groups, hypothesis_set.hypotheses, scene, say, starts)
     report.append(refinement)
     if not candidates:
         return refuse("refinement failed for every hypothesis group", origin)

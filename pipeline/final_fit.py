@@ -257,13 +257,19 @@ def final_fit(
         covariance=combined_covariance(fit, check) + shape_covariance,
         delta_p_mean_m=float("inf") if value is None else float(value),
         box_error_rel=model_box_error(fit, members, trajectory, camera, vehicle, model),
-        traversals=count_traversals(
-            track_spans(members),
-            trajectory.stamps,
-            trajectory.poses,
-            fit.R_cam_from_local,
-            fit.t_cam_from_local,
-            camera,
+        # Drive-pasts counted from the data, but never more than the fit could hold against each other: two
+        # tracks a few seconds apart are one cluster of the leave-one-out check whatever the pose says
+        # about the vehicle leaving the view between them (a wrong pose can say it did).
+        traversals=min(
+            count_traversals(
+                track_spans(members),
+                trajectory.stamps,
+                trajectory.poses,
+                fit.R_cam_from_local,
+                fit.t_cam_from_local,
+                camera,
+            ),
+            len(left_out.clusters),
         ),
         tracks=tuple(used),
         time_offset_std_s=time_offset_std_s,

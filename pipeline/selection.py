@@ -307,16 +307,19 @@ def refine_groups(
     hypotheses: Sequence[Hypothesis],
     scene: Scene,
     say: Callable[[str, float], None],
+    starts: Sequence[Sequence[Hypothesis]] | None = None,
 ) -> tuple[list[Candidate], StageReport]:
     """Every group refined into a candidate (a group whose refinement fails is noted and left out), then the
-    candidates whose refined poses agree merged."""
+    candidates whose refined poses agree merged. `starts`: each group's own hypotheses, one per track in
+    its order (pairs of tracks solved as one, pipeline.pairs); else each track's from `hypotheses`."""
     by_id = {h.track_id: h for h in hypotheses}
     candidates: list[Candidate] = []
     notes: list[str] = []
     for index, track_ids in enumerate(groups):
         say("refinement", 0.55 + 0.35 * index / len(groups))
         try:
-            candidate = refine_group(scene.members(track_ids), [by_id[i] for i in track_ids], scene)
+            own = starts[index] if starts is not None else [by_id[i] for i in track_ids]
+            candidate = refine_group(scene.members(track_ids), own, scene)
         except DegenerateGeometry as err:
             notes.append(f"group {index}: refinement failed: {err}")
             continue

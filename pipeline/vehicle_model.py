@@ -62,6 +62,8 @@ from schemas.common import VehicleProfile
 _POSE, _DELTA, _SHAPE, _BIAS = slice(0, 6), 6, slice(7, 13), slice(13, 18)
 N_PARAMS = 18
 _HELD = 1e-6  # prior std of a parameter held at its start
+# Tracks more than this apart in time (s) are separate drive-pasts for the leave-one-out check.
+TRAVERSAL_GAP_S = 5.0
 SHAPE_NAMES = (
     "z_low_m",
     "wheel_overhang_m",
@@ -815,7 +817,7 @@ def leave_one_out(
     camera: CameraModel,
     vehicle: VehicleProfile,
     params: ModelParams,
-    gap_s: float = 5.0,
+    gap_s: float = TRAVERSAL_GAP_S,
     map_fn: MapFn = map,
 ) -> LeftOut:
     """Fit the model class of `params` without each traversal in turn, started from `fit` (none with fewer
