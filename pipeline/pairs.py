@@ -110,12 +110,11 @@ def straight_tracks(
 ) -> list[MatchedTrack]:
     """The tracks whose own pose their line left unfixed: rejected for it, or fitted by the straight-track
     solver (whose pick may be the one that is off)."""
-    reasons = rejected
     solved = {h.track_id for h in hypotheses if not h.solver.startswith(("epnp", "sqpnp"))}
     return [
         t
         for t in tracks
-        if t.track_id in solved or (t.track_id in reasons and reasons[t.track_id].code in STRAIGHT_CODES)
+        if t.track_id in solved or (t.track_id in rejected and rejected[t.track_id].code in STRAIGHT_CODES)
     ]
 
 
@@ -159,6 +158,7 @@ def corroborated_pairs(
             if isinstance(pair, JointFit):
                 found.append(pair)
     unions: dict[tuple[int, ...], JointFit] = {}
+    corroborated: set[tuple[int, ...]] = set()
     for pair in found:
         for third in others:
             if third.track_id in pair.track_ids or not all(
@@ -174,6 +174,7 @@ def corroborated_pairs(
             union = solver.solve(ordered, pair)
             if isinstance(union, JointFit):
                 unions[key] = union
+                corroborated.add(pair.track_ids)
     notes = [
         f"{len(tracks)} straight tracks, {tried} pairs across non-parallel lines tried, "
         f"{len(found)} fit as one",
@@ -182,9 +183,9 @@ def corroborated_pairs(
     ]
     if found and not unions:
         notes.append("no pair is corroborated by a third drive-past")
-    return list(unions.values()), StageReport(
-        "straight pairs", len(unions), len(found) - len(unions), tuple(notes)
-    )
+    # Kept: the corroborated unions; discarded: the pairs that fit but no third drive-past corroborated.
+    discarded = sum(p.track_ids not in corroborated for p in found)
+    return list(unions.values()), StageReport("straight pairs", len(unions), discarded, tuple(notes))
 
 
 def _apart(a: MatchedTrack, b: MatchedTrack, gap_s: float) -> bool:
