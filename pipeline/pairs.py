@@ -48,7 +48,7 @@ from pipeline.hypotheses import (
     _rotation_std_deg,
     lm_refine,
 )
-from pipeline.stage import Reason, StageReport
+from pipeline.stage import Reason, StageReport, count_reasons
 from pipeline.straight_track import track_line
 from pipeline.vehicle import body_centres
 from pipeline.vehicle_model import TRAVERSAL_GAP_S
@@ -146,6 +146,7 @@ def corroborated_pairs(
     lines = lines[: pairs.max_tracks]
     min_sin = math.sin(math.radians(pairs.min_angle_deg))
     found: list[JointFit] = []
+    rejected: list[Reason] = []
     tried = 0
     for i, (_, track_a, dir_a) in enumerate(lines):
         for _, track_b, dir_b in lines[i + 1 :]:
@@ -157,6 +158,8 @@ def corroborated_pairs(
             pair = solver.solve((track_a, track_b))
             if isinstance(pair, JointFit):
                 found.append(pair)
+            else:
+                rejected.append(pair)
     unions: dict[tuple[int, ...], JointFit] = {}
     corroborated: set[tuple[int, ...]] = set()
     for pair in found:
@@ -183,9 +186,11 @@ def corroborated_pairs(
     ]
     if found and not unions:
         notes.append("no pair is corroborated by a third drive-past")
-    # Kept: the corroborated unions; discarded: the pairs that fit but no third drive-past corroborated.
-    discarded = sum(p.track_ids not in corroborated for p in found)
-    return list(unions.values()), StageReport("straight pairs", len(unions), discarded, tuple(notes))
+    # Kept: the corroborated unions; discarded: every pair tried that is in none, each with its reason.
+    uncorroborated = Reason("pair_uncorroborated", "fits as one, but no third drive-past fits its pose")
+    rejected.extend(uncorroborated for p in found if p.track_ids not in corroborated)
+    report = StageReport("straight pairs", len(unions), len(rejected), tuple(notes), count_reasons(rejected))
+    return list(unions.values()), report
 
 
 def _apart(a: MatchedTrack, b: MatchedTrack, gap_s: float) -> bool:
@@ -206,7 +211,7 @@ class _Solver:
     pairs: PairParams
     clock: ClockParams
 
-    def solve(self, tracks: Sequence[MatchedTrack], start: JointFit | None = None) -> JointFit | str:
+    def solve(self, tracks: Sequence[MatchedTrack], start: JointFit | None = None) -> JointFit | Reason:
         """One pose and clock for `tracks` (from `start`'s, else searched over trial clocks), or why there
         is none.
 
@@ -223,11 +228,18 @@ class _Solver:
         if start is None:
             shift_s, score = self._scan(base, velocity, pixels, sizes, reach_s)
             if not score <= 2.0 * params.max_median_reproj_px:
-                return f"median reprojection error {score:.1f} px on the best trial clock"
+                return Reason(
+                    "pair_scan_misfit",
+                    "median reprojection error {value} px > {limit} px on every trial clock",
+                    "worst track's median reprojection error",
+                    score,
+                    2.0 * params.max_median_reproj_px,
+                    "px",
+                )
             rows = _balanced_rows(sizes, self.pairs.rows_per_track)
             solved = self._best_start(base[rows] - velocity[rows] * shift_s, pixels[rows], sizes, rows)
             if solved is None:
-                return "no pose from the tracks' rows"
+                return Reason("pair_no_pose", "no PnP pose from the tracks' rows")
         else:
             shift_s = start.shift_s
             rows = _balanced_rows(sizes, self.pairs.rows_per_track)
@@ -239,24 +251,62 @@ class _Solver:
             solved, shift_s = joint
         if abs(shift_s) >= reach_s - 1e-6:
             # Pinned to the edge of the search: no clock within it explains the tracks together.
-            return f"clock shift at the edge of the search (+-{reach_s * 1e3:.0f} ms)"
+            return Reason(
+                "pair_clock_at_edge",
+                "clock shift {value} ms at the edge of the search (+-{limit} ms)",
+                "clock shift",
+                shift_s * 1e3,
+                reach_s * 1e3,
+                "ms",
+                ".0f",
+            )
         points = base - velocity * shift_s
         errors = _reprojection_errors(points, pixels, solved.rvec, solved.tvec, camera)
         parts = np.split(errors, np.cumsum(sizes)[:-1])
         medians = tuple(float(np.median(part)) for part in parts)
         if not max(medians) <= params.max_median_reproj_px:
-            return f"median reprojection error {max(medians):.1f} px > {params.max_median_reproj_px:.1f} px"
+            return Reason(
+                "pair_misfit",
+                "median reprojection error {value} px > {limit} px",
+                "worst track's median reprojection error",
+                max(medians),
+                params.max_median_reproj_px,
+                "px",
+            )
         inliers = errors <= params.reproj_threshold_px
         rotation_std_deg = _rotation_std_deg(points[inliers], pixels[inliers], solved, camera)
         if not rotation_std_deg <= params.max_rotation_std_deg:
-            return f"rotation 1-sigma {rotation_std_deg:.1f} deg > {params.max_rotation_std_deg:.1f} deg"
+            return Reason(
+                "pair_rotation_not_fixed",
+                "rotation 1-sigma {value} deg > {limit} deg",
+                "rotation 1-sigma",
+                rotation_std_deg,
+                params.max_rotation_std_deg,
+                "deg",
+            )
         R = rotation_from_rvec(solved.rvec)
         t = solved.tvec.reshape(3).copy()
         centre = camera_centre(R, t)
-        if not _distance_to_path(centre[:2], self.path) <= params.max_camera_distance_m:
-            return "camera far from the driven path"
-        if not float(self.ground.height_of(centre[None, :])[0]) >= params.min_camera_height_m:
-            return "camera below the road"
+        distance_m = _distance_to_path(centre[:2], self.path)
+        if not distance_m <= params.max_camera_distance_m:
+            return Reason(
+                "pair_far_from_path",
+                "camera {value} m from the driven path > {limit} m",
+                "camera distance from the driven path",
+                distance_m,
+                params.max_camera_distance_m,
+                "m",
+            )
+        height_m = float(self.ground.height_of(centre[None, :])[0])
+        if not height_m >= params.min_camera_height_m:
+            return Reason(
+                "pair_below_road",
+                "camera {value} m above ground < {limit} m (below the road)",
+                "camera height above ground",
+                height_m,
+                params.min_camera_height_m,
+                "m",
+            )
         return JointFit(
             tuple(tracks),
             R,

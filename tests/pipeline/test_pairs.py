@@ -149,13 +149,16 @@ def test_a_clock_pinned_to_the_edge_of_the_search_is_no_solution() -> None:
     # Searched within +-0.2 s only, the best clock is the edge: whatever pose it gives is not the tracks'.
     unions, report = solve(tracks, trajectory, clock=ClockParams(max_shift_s=0.2))
     assert unions == [] and "0 fit as one" in report.notes[0], report
+    assert "pair_clock_at_edge" in {r.example.code for r in report.reasons}, report
 
 
 def test_one_pair_without_a_third_drive_past_is_no_evidence() -> None:
     tracks, trajectory = scene(0.1)
     unions, report = solve(tracks[:2], trajectory)
     assert unions == []
-    assert report.discarded == 1 and any("no pair is corroborated" in n for n in report.notes), report
+    assert report.kept == 0 and report.discarded == 1, report
+    assert any("no pair is corroborated" in n for n in report.notes), report
+    assert [r.example.code for r in report.reasons] == ["pair_uncorroborated"]
 
 
 def test_parallel_drive_pasts_are_not_paired() -> None:
