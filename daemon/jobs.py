@@ -239,7 +239,12 @@ def _with_report(spec: JobSpec, outcome: JobOutcome, progress: _Progress) -> Job
         return replace(outcome, stage_notes=(*outcome.stage_notes, note))
     path = directory / history_name(result, ".html")
     arguments = (path, result, progress.calibration, progress.inputs, outcome.stage_notes)
-    threading.Thread(target=_draw_report, args=arguments, name="rsucal-report", daemon=True).start()
+    # Not a daemon thread: the worker's interpreter waits for it at exit. A daemon thread still drawing
+    # when the worker ends is stopped by pthread_exit inside matplotlib's native code, which unwinds through
+    # C++ frames that allow no exception: "terminate called without an active exception" and SIGABRT
+    # (seen in about 1 of 8 demos at the daemon's stop). A worker that does not end in time is terminated
+    # by the pool (daemon.pool: SIGTERM, then os._exit, no unwinding).
+    threading.Thread(target=_draw_report, args=arguments, name="rsucal-report", daemon=False).start()
     return replace(outcome, report_path=str(path))
 
 

@@ -267,6 +267,37 @@ def test_job_writes_its_report_beside_the_result(scene: Scene, tmp_path: Path) -
     assert [p.name for p in history.iterdir()] == [expected.name]  # no temporary file left behind
 
 
+# A job worker's life in short: run one job with a report, then end the interpreter at once (as a pool
+# worker does when the daemon stops), with the report thread still drawing.
+_RUN_AND_EXIT = """
+import pickle, sys
+from daemon.jobs import run_job
+spec = pickle.loads(open(sys.argv[1], "rb").read())
+outcome = run_job(spec)
+print(outcome.report_path)
+"""
+
+
+def test_a_worker_ending_right_after_its_job_finishes_the_report_first(scene: Scene, tmp_path: Path) -> None:
+    # A daemon report thread was cut off at the interpreter's exit inside matplotlib's native code: the
+    # worker died of SIGABRT ("terminate called without an active exception", ~1 in 8 demos) or left no
+    # page. The exit now waits for the page.
+    spec_path = tmp_path / "spec.pickle"
+    history = tmp_path / "history"
+    spec_path.write_bytes(
+        pickle.dumps(dataclasses.replace(scene.spec, report_dir=str(history), track_workers=1))
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", _RUN_AND_EXIT, str(spec_path)], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    assert "terminate called" not in done.stderr
+    page = Path(done.stdout.strip().splitlines()[-1])
+    assert page.parent == history
+    text = page.read_text(encoding="utf-8")  # there when the process ended, not some time after
+    assert "Accepted: every validation gate passed" in text and text.rstrip().endswith("</html>")
+
+
 def test_a_report_that_cannot_be_drawn_says_why(
     scene: Scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
