@@ -345,6 +345,25 @@ def _hypothesis_for(
     R = rotation_from_rvec(solved.rvec)
     t = solved.tvec.reshape(3).copy()
     centre = camera_centre(R, t)
+    misplaced = placement_reason(centre, path, ground, params)
+    if misplaced is not None:
+        return misplaced
+    return Hypothesis(
+        track_id=track.track_id,
+        R_cam_from_local=R,
+        t_cam_from_local=t,
+        inliers=inliers,
+        median_reproj_px=median_px,
+        rotation_std_deg=rotation_std_deg,
+        solver=solved.solver,
+    )
+
+
+def placement_reason(
+    centre: Vec3, path: _DrivenPath, ground: GroundPlaneFit, params: HypothesisParams
+) -> Reason | None:
+    """Why a camera at `centre` (local m) cannot be this one (paper III-D: d_thr from the driven path, not
+    below the road), or None."""
     distance_m = _distance_to_path(centre[:2], path)
     if not distance_m <= params.max_camera_distance_m:
         return Reason(
@@ -365,15 +384,7 @@ def _hypothesis_for(
             params.min_camera_height_m,
             "m",
         )
-    return Hypothesis(
-        track_id=track.track_id,
-        R_cam_from_local=R,
-        t_cam_from_local=t,
-        inliers=inliers,
-        median_reproj_px=median_px,
-        rotation_std_deg=rotation_std_deg,
-        solver=solved.solver,
-    )
+    return None
 
 
 def _fit_track(

@@ -31,22 +31,22 @@ from scipy.optimize import least_squares
 
 from pipeline.arrays import FloatArray, IntArray, Mask, Pixels, Points3, Rotation, Vec3
 from pipeline.association import MatchedTrack, Trajectory
-from pipeline.camera import CameraModel, camera_centre, rotation_from_rvec
-from pipeline.camera import rvec_from_rotation as rvec_of
+from pipeline.camera import CameraModel, camera_centre, rotation_from_rvec, rvec_from_rotation
 from pipeline.clock import ClockParams, track_velocity
 from pipeline.ground import GroundPlaneFit
 from pipeline.hypotheses import (
     Hypothesis,
     HypothesisParams,
     _append_finite,
-    _distance_to_path,
     _driven_path,
     _DrivenPath,
     _path_xy,
     _Pose,
+    _refits,
     _reprojection_errors,
+    _reprojection_reason,
     _rotation_std_deg,
-    lm_refine,
+    placement_reason,
 )
 from pipeline.stage import Reason, StageReport, count_reasons
 from pipeline.straight_track import track_line
@@ -225,6 +225,7 @@ class _Solver:
         velocity = np.vstack([np.repeat(track_velocity(t)[None], len(t.stamps), axis=0) for t in tracks])
         pixels = np.vstack([t.box_centres for t in tracks])
         reach_s = self.clock.max_shift_s
+        rows = _balanced_rows(sizes, self.pairs.rows_per_track)
         if start is None:
             shift_s, score = self._scan(base, velocity, pixels, sizes, reach_s)
             if not score <= 2.0 * params.max_median_reproj_px:
@@ -236,14 +237,13 @@ class _Solver:
                     2.0 * params.max_median_reproj_px,
                     "px",
                 )
-            rows = _balanced_rows(sizes, self.pairs.rows_per_track)
-            solved = self._best_start(base[rows] - velocity[rows] * shift_s, pixels[rows], sizes, rows)
-            if solved is None:
+            found = self._best_start(base[rows] - velocity[rows] * shift_s, pixels[rows], len(tracks))
+            if found is None:
                 return Reason("pair_no_pose", "no PnP pose from the tracks' rows")
+            solved = found
         else:
             shift_s = start.shift_s
-            rows = _balanced_rows(sizes, self.pairs.rows_per_track)
-            solved = _Pose(rvec_of(start.R), start.t.copy(), start.solver)
+            solved = _Pose(rvec_from_rotation(start.R), start.t.copy(), start.solver)
         joint = _with_clock(
             base[rows], velocity[rows], pixels[rows], solved, shift_s, reach_s, camera, params
         )
@@ -265,14 +265,7 @@ class _Solver:
         parts = np.split(errors, np.cumsum(sizes)[:-1])
         medians = tuple(float(np.median(part)) for part in parts)
         if not max(medians) <= params.max_median_reproj_px:
-            return Reason(
-                "pair_misfit",
-                "median reprojection error {value} px > {limit} px",
-                "worst track's median reprojection error",
-                max(medians),
-                params.max_median_reproj_px,
-                "px",
-            )
+            return _reprojection_reason(max(medians), params)  # the worst track's
         inliers = errors <= params.reproj_threshold_px
         rotation_std_deg = _rotation_std_deg(points[inliers], pixels[inliers], solved, camera)
         if not rotation_std_deg <= params.max_rotation_std_deg:
@@ -287,26 +280,9 @@ class _Solver:
         R = rotation_from_rvec(solved.rvec)
         t = solved.tvec.reshape(3).copy()
         centre = camera_centre(R, t)
-        distance_m = _distance_to_path(centre[:2], self.path)
-        if not distance_m <= params.max_camera_distance_m:
-            return Reason(
-                "pair_far_from_path",
-                "camera {value} m from the driven path > {limit} m",
-                "camera distance from the driven path",
-                distance_m,
-                params.max_camera_distance_m,
-                "m",
-            )
-        height_m = float(self.ground.height_of(centre[None, :])[0])
-        if not height_m >= params.min_camera_height_m:
-            return Reason(
-                "pair_below_road",
-                "camera {value} m above ground < {limit} m (below the road)",
-                "camera height above ground",
-                height_m,
-                params.min_camera_height_m,
-                "m",
-            )
+        misplaced = placement_reason(centre, self.path, self.ground, params)
+        if misplaced is not None:
+            return misplaced
         return JointFit(
             tuple(tracks),
             R,
@@ -324,7 +300,9 @@ class _Solver:
         if len(track.stamps) < self.params.min_correspondences:
             return False
         points = body_centres(track.poses, self.vehicle) - track_velocity(track) * fit.shift_s
-        errors = _reprojection_errors(points, track.box_centres, rvec_of(fit.R), fit.t, self.camera)
+        errors = _reprojection_errors(
+            points, track.box_centres, rvec_from_rotation(fit.R), fit.t, self.camera
+        )
         return bool(np.median(errors) <= 2.0 * self.params.max_median_reproj_px)
 
     def _scan(
@@ -334,44 +312,34 @@ class _Solver:
         track fits the worst track best (SQPnP: 0.05 ms a solve), and that track's median error (px)."""
         steps = math.floor(reach_s / self.pairs.scan_step_s + 1e-9)
         rows = _balanced_rows(sizes, self.pairs.scan_rows_per_track)
-        owner = np.repeat(np.arange(len(sizes)), len(rows) // len(sizes))
         best_shift, best_score = 0.0, math.inf
         for shift_s in self.pairs.scan_step_s * np.arange(-steps, steps + 1):
             moved = base[rows] - velocity[rows] * shift_s
             pose = _sqpnp(moved, pixels[rows], self.camera)
             if pose is None:
                 continue
-            errors = _errors(moved, pixels[rows], pose, self.camera)
-            score = max(float(np.median(errors[owner == k])) for k in range(len(sizes)))
+            score = _worst_median(_errors(moved, pixels[rows], pose, self.camera), len(sizes))
             if score < best_score:
                 best_shift, best_score = float(shift_s), score
         return best_shift, best_score
 
-    def _best_start(
-        self, points: Points3, pixels: Pixels, sizes: Sequence[int], rows: IntArray
-    ) -> _Pose | None:
-        """SQPnP, EPnP and LM from each on the balanced rows; the one whose worst track fits best."""
+    def _best_start(self, points: Points3, pixels: Pixels, tracks: int) -> _Pose | None:
+        """EPnP, then LM from it, SQPnP and LM from that (hypotheses._refits) on balanced rows of `tracks`
+        tracks; the one whose worst track fits best."""
         starts: list[_Pose] = []
-        for flag, name in ((cv2.SOLVEPNP_SQPNP, "sqpnp"), (cv2.SOLVEPNP_EPNP, "epnp")):
-            try:
-                found, rvec, tvec = cv2.solvePnP(points, pixels, self.camera.K, self.camera.dist, flags=flag)
-            except cv2.error:
-                continue
-            if found:
-                _append_finite(starts, rvec, tvec, name)
-        for pose in list(starts):
-            refined = lm_refine(points, pixels, pose.rvec, pose.tvec, self.camera)
-            if refined is not None:
-                _append_finite(starts, refined[0], refined[1], pose.solver + "+lm")
-        if not starts:
-            return None
-        owner = np.repeat(np.arange(len(sizes)), len(rows) // len(sizes))
-
-        def worst(pose: _Pose) -> float:
-            errors = _reprojection_errors(points, pixels, pose.rvec, pose.tvec, self.camera)
-            return max(float(np.median(errors[owner == k])) for k in range(len(sizes)))
-
-        return min(starts, key=worst)
+        try:
+            found, rvec, tvec = cv2.solvePnP(
+                points, pixels, self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_EPNP
+            )
+        except cv2.error:
+            found = False
+        if not (found and _append_finite(starts, rvec, tvec, "epnp")):
+            fallback = _sqpnp(points, pixels, self.camera)
+            if fallback is None:
+                return None
+            starts.append(fallback)
+        starts.extend(_refits(points, pixels, starts[0], self.camera))
+        return min(starts, key=lambda pose: _worst_median(_errors(points, pixels, pose, self.camera), tracks))
 
 
 def _errors(points: Points3, pixels: Pixels, pose: _Pose, camera: CameraModel) -> FloatArray:
@@ -423,6 +391,11 @@ def _with_clock(
     if not np.all(np.isfinite(fit.x)):
         return None
     return _Pose(fit.x[:3].copy(), fit.x[3:6].copy(), start.solver + "+clock"), float(fit.x[6])
+
+
+def _worst_median(errors: FloatArray, tracks: int) -> float:
+    """The largest of the tracks' median errors, for errors of `_balanced_rows` (as many rows each)."""
+    return float(np.max(np.median(errors.reshape(tracks, -1), axis=1)))
 
 
 def _balanced_rows(sizes: Sequence[int], per_track: int) -> IntArray:
