@@ -96,11 +96,23 @@ def seen_track(
     return MatchedTrack(track_id=track_id, stamps=stamps, boxes=boxes, poses=poses[inside])
 
 
-def scene(latency_s: float, noise_px: float = 0.0, seed: int = 0) -> tuple[list[MatchedTrack], Trajectory]:
-    """Three straight drive-pasts a minute apart: west to east, south to north, east to west."""
+def scene(
+    latency_s: float,
+    noise_px: float = 0.0,
+    seed: int = 0,
+    pose: tuple[np.ndarray, np.ndarray] | None = None,
+    heading_deg: float = 0.0,
+    crossing_deg: float = 90.0,
+) -> tuple[list[MatchedTrack], Trajectory]:
+    """Three straight drive-pasts a minute apart, seen by `pose` (default `rolled_pose`): along
+    `heading_deg` (default west to east), across it at `crossing_deg` (default south to north), and back."""
     rng = np.random.default_rng(seed)
-    drives = [drive(0.0, (0.0, 12.0), 0.0), drive(90.0, (2.0, 10.0), 60.0), drive(180.0, (0.0, 16.0), 120.0)]
-    tracks = [seen_track(i + 1, *d, latency_s, noise_px, rng) for i, d in enumerate(drives)]
+    drives = [
+        drive(heading_deg, (0.0, 12.0), 0.0),
+        drive(heading_deg + crossing_deg, (2.0, 10.0), 60.0),
+        drive(heading_deg + 180.0, (0.0, 16.0), 120.0),
+    ]
+    tracks = [seen_track(i + 1, *d, latency_s, noise_px, rng, pose) for i, d in enumerate(drives)]
     times = np.concatenate([d[0] for d in drives])
     poses = np.concatenate([d[1] for d in drives])
     stamps = START_NS + np.round(times * 1e9).astype(np.int64)
@@ -160,18 +172,10 @@ def test_any_camera_and_two_crossing_roads_give_the_pose_and_clock(
     latency_s: float,
 ) -> None:
     R = camera_rotation_from_view(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
-    pose = (R, -R @ CENTRE)
-    drives = [
-        drive(heading_deg, (0.0, 12.0), 0.0),
-        drive(heading_deg + crossing_deg, (2.0, 10.0), 60.0),
-        drive(heading_deg + 180.0, (0.0, 16.0), 120.0),
-    ]
-    tracks = [seen_track(i + 1, *d, latency_s, pose=pose) for i, d in enumerate(drives)]
-    assume(all(len(t.stamps) >= 20 for t in tracks))
-    times = np.concatenate([d[0] for d in drives])
-    trajectory = Trajectory(
-        START_NS + np.round(times * 1e9).astype(np.int64), np.concatenate([d[1] for d in drives])
+    tracks, trajectory = scene(
+        latency_s, pose=(R, -R @ CENTRE), heading_deg=heading_deg, crossing_deg=crossing_deg
     )
+    assume(all(len(t.stamps) >= 20 for t in tracks))
     unions, report = solve(tracks, trajectory)
     found = {u.track_ids: u for u in unions}
     assert (1, 2, 3) in found, report
