@@ -37,13 +37,17 @@ class CameraModel:
     # Whether any distortion coefficient is non-zero; fixed at construction (asked at every projection in
     # the solvers' inner loops).
     has_distortion: bool = field(init=False, repr=False, compare=False)
-    # The distorted normalised radius out to which the lens model holds (`model_radius_limit`); inf for a
-    # model that never turns back.
+    # The distorted normalised radius out to which the lens model holds (`model_radius_limit`), and the
+    # undistorted one it comes from (the direction's tan of the angle off axis); inf for a model that never
+    # turns back.
     radius_limit: float = field(init=False, repr=False, compare=False)
+    undistorted_limit: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "has_distortion", bool(np.any(np.asarray(self.dist) != 0.0)))
-        object.__setattr__(self, "radius_limit", model_radius_limit(np.asarray(self.dist, dtype=np.float64)))
+        r_limit, rho_limit = model_radius_limits(np.asarray(self.dist, dtype=np.float64))
+        object.__setattr__(self, "radius_limit", rho_limit)
+        object.__setattr__(self, "undistorted_limit", r_limit)
 
     def beyond_model(self, pixels: Pixels) -> Mask:
         """Pixels (N, 2) beyond the radius the lens model holds to (`radius_limit`): (N,)."""
@@ -89,6 +93,13 @@ def model_radius_limit(dist: FloatArray) -> float:
     """The distorted normalised radius rho out to which the radial model rho = r (1 + k1 r^2 + k2 r^4 +
     k3 r^6) is used: where d rho / d r first falls to MIN_RADIAL_MAGNIFICATION, searched out to
     MAX_MODEL_RADIUS (inf if it never does). The tangential terms (p1, p2: a few thousandths) are left out."""
+    return model_radius_limits(dist)[1]
+
+
+def model_radius_limits(dist: FloatArray) -> tuple[float, float]:
+    """(r, rho): the undistorted normalised radius where the lens model's radial magnification falls to
+    MIN_RADIAL_MAGNIFICATION, and the distorted radius it maps to (`model_radius_limit`); (inf, inf) if it
+    never does."""
     k1, k2, k3 = float(dist[0]), float(dist[1]), float(dist[4])
 
     def slope(r: FloatArray) -> FloatArray:
@@ -100,7 +111,7 @@ def model_radius_limit(dist: FloatArray) -> float:
     r = np.linspace(0.0, MAX_MODEL_RADIUS, 10001)
     low = np.flatnonzero(slope(r) <= MIN_RADIAL_MAGNIFICATION)
     if len(low) == 0:
-        return math.inf
+        return math.inf, math.inf
     a, b = float(r[low[0] - 1]), float(r[low[0]])  # slope(0) = 1: low[0] >= 1
     for _ in range(60):
         mid = 0.5 * (a + b)
@@ -109,7 +120,54 @@ def model_radius_limit(dist: FloatArray) -> float:
         else:
             a = mid
     u = b * b
-    return b * (1.0 + u * (k1 + u * (k2 + u * k3)))
+    return b, b * (1.0 + u * (k1 + u * (k2 + u * k3)))
+
+
+def within_model(x: FloatArray, y: FloatArray, limit: float) -> tuple[FloatArray, FloatArray]:
+    """Undistorted normalised coordinates (same shape) pulled in along their radius to at most `limit`
+    (`CameraModel.undistorted_limit`). Beyond it the lens polynomial turns back: a point 75 deg off axis
+    would land inside the image, near the corner. The solvers project through this clamp, as through their
+    depth clamp: a pose that puts the vehicle that far off axis sees it on the model's rim, never inside the
+    image, and the step back is continuous. Unchanged (the same arrays) when nothing lies beyond."""
+    if math.isinf(limit):
+        return x, y
+    r2 = x * x + y * y
+    beyond = r2 > limit * limit
+    if not beyond.any():
+        return x, y
+    shrink = np.where(beyond, limit / np.sqrt(np.where(beyond, r2, 1.0)), 1.0)
+    return x * shrink, y * shrink
+
+
+def distortion_chain(
+    x: FloatArray, y: FloatArray, dx: FloatArray, dy: FloatArray, camera: CameraModel
+) -> tuple[FloatArray, FloatArray]:
+    """The derivatives of the distorted normalised coordinates of `within_model(x, y)`: from those of the
+    undistorted ones dx, dy (M, P) at points x, y (M,) -> (M, P) each. The clamp's derivative keeps only the
+    tangential part (the radius is pinned at the limit); the distortion's is the analytic 2 x 2 Jacobian."""
+    limit = camera.undistorted_limit
+    if not math.isinf(limit):
+        r2 = x * x + y * y
+        beyond = r2 > limit * limit
+        if beyond.any():
+            r = np.sqrt(np.where(beyond, r2, 1.0))
+            ux, uy = x / r, y / r
+            radial = ux[:, None] * dx + uy[:, None] * dy
+            shrink = (limit / r)[:, None]
+            b = beyond[:, None]
+            dx = np.where(b, shrink * (dx - ux[:, None] * radial), dx)
+            dy = np.where(b, shrink * (dy - uy[:, None] * radial), dy)
+            x, y = within_model(x, y, limit)
+    if not camera.has_distortion:
+        return dx, dy
+    k1, k2, p1, p2, k3 = camera.dist
+    r2 = x * x + y * y
+    radial_ = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    j11 = radial_ + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+    j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y  # = d yd / d x
+    j22 = radial_ + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+    return j11[:, None] * dx + j12[:, None] * dy, j12[:, None] * dx + j22[:, None] * dy
 
 
 def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
@@ -129,13 +187,24 @@ def distort_xy(x: FloatArray, y: FloatArray, dist: FloatArray) -> tuple[FloatArr
 
 
 def project_points_cam(points_cam: Points3, camera: CameraModel) -> Pixels:
-    """Project points already in the camera frame (N, 3), z > 0 assumed, to distorted pixels (N, 2)."""
+    """Project points already in the camera frame (N, 3), z > 0 assumed, to distorted pixels (N, 2).
+
+    Points further off axis than the lens model holds (`CameraModel.undistorted_limit`) have no pixel: NaN.
+    """
     check_shape(points_cam, "N,3", name="points_cam")
     xy = points_cam[:, :2] / points_cam[:, 2:3]
     if camera.has_distortion:
         xy = distort_normalized(xy, camera.dist)
     K = camera.K
-    return np.stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1)
+    pixels = np.stack(
+        [K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1
+    )
+    limit = camera.undistorted_limit
+    if not math.isinf(limit):
+        with np.errstate(invalid="ignore"):
+            beyond = np.sum((points_cam[:, :2] / points_cam[:, 2:3]) ** 2, axis=1) > limit * limit
+        pixels[beyond] = np.nan
+    return pixels
 
 
 def project_points(
@@ -143,7 +212,8 @@ def project_points(
 ) -> tuple[Pixels, FloatArray]:
     """Project local-frame points (N, 3) to pixels (N, 2); also returns the depth z_cam (N,) in metres.
 
-    Points with z_cam <= 0 get NaN pixels: they are behind the camera.
+    Points with z_cam <= 0 get NaN pixels: they are behind the camera; so do points beyond the lens model
+    (project_points_cam).
     """
     check_shape(points_local, "N,3", name="points_local")
     points_cam = points_local @ R_cam_from_local.T + t_cam_from_local

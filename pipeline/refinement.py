@@ -40,8 +40,10 @@ from pipeline.camera import (
     CameraModel,
     camera_centre,
     distort_normalized,
+    distortion_chain,
     rotation_from_rvec,
     undistort_pixels,
+    within_model,
 )
 from pipeline.errors import DegenerateGeometry, ShapeError
 from pipeline.ground import GroundPlaneFit
@@ -382,10 +384,13 @@ def _camera_points_jacobian(points_cam: FloatArray, R: Rotation, w: FloatArray) 
 def _project(points_cam: FloatArray, camera: CameraModel, min_depth_m: float) -> FloatArray:
     """Camera-frame points (M, 3) -> distorted pixels (M, 2), depth clamped at min_depth_m.
 
-    Same model as camera.project_points_cam; the clamp keeps a bad start pose (vehicle partly behind the
-    camera) finite instead of NaN, so the solver can walk back."""
+    Same model as camera.project_points_cam; the clamps keep a bad start pose (vehicle partly behind the
+    camera, or further off axis than the lens model holds: camera.within_model) finite instead of NaN, so
+    the solver can walk back."""
     z = np.maximum(points_cam[:, 2], min_depth_m)
     xy = points_cam[:, :2] / z[:, None]
+    if not math.isinf(camera.undistorted_limit):
+        xy = np.stack(within_model(xy[:, 0], xy[:, 1], camera.undistorted_limit), axis=1)
     if camera.has_distortion:
         xy = distort_normalized(xy, camera.dist)
     K = camera.K
@@ -403,15 +408,7 @@ def _project_jacobian(
     dz = np.where(clamped, 0.0, 1.0)[:, None] * d_points_cam[:, 2, :]
     dx = inv_z[:, None] * (d_points_cam[:, 0, :] - x[:, None] * dz)
     dy = inv_z[:, None] * (d_points_cam[:, 1, :] - y[:, None] * dz)
-    if camera.has_distortion:
-        k1, k2, p1, p2, k3 = camera.dist
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-        j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
-        j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
-        j22 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
-        dx, dy = j11[:, None] * dx + j12[:, None] * dy, j12[:, None] * dx + j22[:, None] * dy
+    dx, dy = distortion_chain(x, y, dx, dy, camera)
     K = camera.K
     return np.stack([K[0, 0] * dx + K[0, 1] * dy, K[1, 1] * dy], axis=1)
 

@@ -18,7 +18,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Points3, PoseArray, Rotation, Vec3
-from pipeline.camera import CameraModel, distort_xy, rotation_angle_rad, rotation_from_rvec
+from pipeline.camera import (
+    CameraModel,
+    distort_xy,
+    distortion_chain,
+    rotation_angle_rad,
+    rotation_from_rvec,
+    within_model,
+)
 from pipeline.ground import GroundPlaneFit
 from pipeline.vehicle import body_corners
 from schemas.common import VehicleProfile
@@ -552,7 +559,7 @@ class _BoxFitPoint:
             edges = len(data.kept_scale)
             empty = np.zeros(0, dtype=np.int64)
             return _BoxFitPoint(x, np.full(edges, 1e3), False, empty, np.zeros(0, dtype=bool), np.zeros(0))
-        xn, yn = points_cam[:, 0] / depth, points_cam[:, 1] / depth
+        xn, yn = within_model(points_cam[:, 0] / depth, points_cam[:, 1] / depth, camera.undistorted_limit)
         if camera.has_distortion:
             xn, yn = distort_xy(xn, yn, camera.dist)
         K = camera.K
@@ -584,18 +591,7 @@ class _BoxFitPoint:
         xn, yn = points_cam[:, 0] * inv_depth, points_cam[:, 1] * inv_depth
         dx = (d_cam[:, 0] - xn[:, None] * d_cam[:, 2]) * inv_depth[:, None]
         dy = (d_cam[:, 1] - yn[:, None] * d_cam[:, 2]) * inv_depth[:, None]
-        if camera.has_distortion:
-            k1, k2, p1, p2, k3 = camera.dist
-            r2 = xn * xn + yn * yn
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            radial_r2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-            dxd_dx = radial + 2.0 * xn * xn * radial_r2 + 2.0 * p1 * yn + 6.0 * p2 * xn
-            dxd_dy = 2.0 * xn * yn * radial_r2 + 2.0 * p1 * xn + 2.0 * p2 * yn  # = d yd / d x
-            dyd_dy = radial + 2.0 * yn * yn * radial_r2 + 6.0 * p1 * yn + 2.0 * p2 * xn
-            dx, dy = (
-                dxd_dx[:, None] * dx + dxd_dy[:, None] * dy,
-                dxd_dy[:, None] * dx + dyd_dy[:, None] * dy,
-            )
+        dx, dy = distortion_chain(xn, yn, dx, dy, camera)
         K = camera.K
         d_edge = np.where(self.is_u[:, None], K[0, 0] * dx + K[0, 1] * dy, K[1, 1] * dy)
         return np.asarray(d_edge / self.scale[:, None], dtype=np.float64)
@@ -652,7 +648,9 @@ def _box_residuals(
     is_ahead = depth > 1e-6
     in_front = np.all(is_ahead, axis=1)
     safe_depth = np.where(is_ahead, depth, 1.0)
-    xn, yn = points_cam[..., 0] / safe_depth, points_cam[..., 1] / safe_depth
+    xn, yn = within_model(
+        points_cam[..., 0] / safe_depth, points_cam[..., 1] / safe_depth, camera.undistorted_limit
+    )
     if camera.has_distortion:
         xn, yn = distort_xy(xn, yn, camera.dist)
     K = camera.K

@@ -31,6 +31,7 @@ from pipeline.camera import (
     undistort_pixels,
 )
 from pipeline.errors import ShapeError
+from pipeline.refinement import _project, _project_jacobian
 from schemas.common import CameraIntrinsics
 
 angles = st.floats(-math.pi, math.pi)
@@ -108,8 +109,14 @@ def test_project_points_equals_opencv(
     pixels, depth = project_points(points_local, R, t, camera)
     rvec = SciRotation.from_matrix(R).as_rotvec()
     expected, _ = cv2.projectPoints(points_local, rvec, t, camera.K, camera.dist)
-    np.testing.assert_allclose(pixels, expected.reshape(-1, 2), rtol=0, atol=1e-6)
-    np.testing.assert_allclose(depth, (points_local @ R.T + t)[:, 2], rtol=1e-12, atol=1e-9)
+    # OpenCV's polynomial everywhere; ours only out to where the lens model holds, no pixel beyond.
+    points_cam = points_local @ R.T + t
+    r = np.hypot(points_cam[:, 0], points_cam[:, 1]) / points_cam[:, 2]
+    held = r <= camera.undistorted_limit
+    assume(abs(r - camera.undistorted_limit).min() > 1e-9)
+    np.testing.assert_allclose(pixels[held], expected.reshape(-1, 2)[held], rtol=0, atol=1e-6)
+    assert np.isnan(pixels[~held]).all()
+    np.testing.assert_allclose(depth, points_cam[:, 2], rtol=1e-12, atol=1e-9)
 
 
 @settings(max_examples=50, deadline=None)
@@ -269,6 +276,75 @@ def test_a_fitted_polynomial_that_turns_back_inside_the_image_is_flagged_there_o
     np.testing.assert_allclose(reprojected, inside, rtol=0, atol=1e-6)
     r = np.linspace(0.0, 5.0, 50001)
     assert radial(camera.dist, r).max() < math.hypot(960.0, 540.0) / 900.0
+
+
+def _turning_camera() -> CameraModel:
+    # The k1 -0.05 polynomial (a wide 800 px lens on 1920 x 1200): the image ends at rho 1.41, the model
+    # turns at r 2.58 / rho 1.71, and a point at r 3.5 (74 deg off axis) would land back at rho 1.36.
+    return CameraModel.from_intrinsics(
+        CameraIntrinsics(
+            width=1920, height=1200, fx=800.0, fy=800.0, cx=960.0, cy=600.0, dist=(-0.05, 0.0, 0.0, 0.0, 0.0)
+        )
+    )  # fmt: skip
+
+
+def test_points_beyond_the_lens_model_have_no_pixel() -> None:
+    camera = _turning_camera()
+    r_limit = camera.undistorted_limit
+    assert radial(camera.dist, np.array(r_limit)) == pytest.approx(camera.radius_limit)
+    assert radial_slope(camera.dist, np.array(r_limit)) == pytest.approx(MIN_RADIAL_MAGNIFICATION)
+    # Without the limit the point 74 deg off axis would project inside the image.
+    folded = 800.0 * float(radial(camera.dist, np.array(3.5)))
+    assert folded < math.hypot(960.0, 600.0)
+    directions = np.array([[3.5, 0.0, 1.0], [0.0, -3.5, 1.0], [0.99 * r_limit, 0.0, 1.0], [1.2, 0.5, 1.0]])
+    pixels = project_points_cam(directions, camera)
+    assert np.isnan(pixels[:2]).all()
+    assert np.isfinite(pixels[2:]).all()
+    pixels, depth = project_points(3.0 * directions, np.eye(3), np.zeros(3), camera)
+    assert np.isnan(pixels[:2]).all() and np.isfinite(pixels[2:]).all()
+    np.testing.assert_array_equal(depth, 3.0)
+
+
+def test_solver_projection_holds_points_beyond_the_lens_model_on_its_rim() -> None:
+    camera = _turning_camera()
+    r_limit, rim_px = camera.undistorted_limit, camera.model_limit_px()
+    angles = np.linspace(0.0, 2.0 * math.pi, 7)
+    for r in (1.01 * r_limit, 3.5, 9.0):
+        points = np.column_stack([r * np.cos(angles), r * np.sin(angles), np.ones_like(angles)])
+        uv = _project(points, camera, 0.1)
+        # On the rim, in the point's own direction: never back inside the image.
+        np.testing.assert_allclose(np.hypot(uv[:, 0] - 960.0, uv[:, 1] - 600.0), rim_px, rtol=1e-9)
+        np.testing.assert_allclose(np.arctan2(uv[:, 1] - 600.0, uv[:, 0] - 960.0), np.arctan2(
+            np.sin(angles), np.cos(angles)), atol=1e-9)  # fmt: skip
+    # Inside the limit the solver's projection is the camera's.
+    inside = np.array([[0.5 * r_limit, 0.3, 1.0], [0.0, 0.999 * r_limit, 1.0]])
+    np.testing.assert_array_equal(_project(inside, camera, 0.1), project_points_cam(inside, camera))
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    r=st.floats(0.2, 8.0),
+    angle=st.floats(-math.pi, math.pi),
+    depth=st.floats(2.0, 50.0),
+    dist=st.sampled_from([(-0.05, 0.0, 0.001, -0.002, 0.0), (-0.30, 0.09, 0.0005, -0.0004, -0.012)]),
+)
+def test_solver_projection_jacobian_matches_finite_differences_inside_and_beyond_the_model(
+    r: float, angle: float, depth: float, dist: tuple[float, float, float, float, float]
+) -> None:
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(width=1920, height=1200, fx=800.0, fy=820.0, cx=955.0, cy=610.0, dist=dist)
+    )
+    assume(abs(r - camera.undistorted_limit) > 1e-3)  # the clamp's kink
+    point = np.array([[r * math.cos(angle) * depth, r * math.sin(angle) * depth, depth]])
+    d_point = np.zeros((1, 3, 6))
+    d_point[0, :, 3:] = np.eye(3)  # derivatives with respect to the point itself
+    analytic = _project_jacobian(point, d_point, camera, 0.1)[0, :, 3:]
+    step = 1e-6 * depth
+    numeric = np.column_stack(
+        [(_project(point + step * e, camera, 0.1) - _project(point - step * e, camera, 0.1))[0] / (2 * step)
+         for e in np.eye(3)]
+    )  # fmt: skip
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-5 * np.abs(numeric).max())
 
 
 def test_a_lens_that_never_turns_back_flags_no_pixel() -> None:

@@ -129,3 +129,20 @@ def test_missing_poses_never_prove_the_vehicle_left() -> None:
 def test_no_tracks_no_traversals() -> None:
     stamps, poses = _drive([10.0, 20.0])
     assert count_traversals([], stamps, poses, _R, _T, _CAMERA) == 0
+
+
+def test_a_vehicle_beyond_the_lens_model_is_out_of_view() -> None:
+    """A wide lens whose polynomial (k1 -0.05) turns back 69 deg off axis: the vehicle waiting 16 m to the
+    camera's side, 75 deg off axis, would project back inside the image (near (1692, 1023) px) if the
+    polynomial were followed past its turn. It is out of view, so the drive-pasts before and after count
+    twice."""
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(
+            width=1920, height=1200, fx=800.0, fy=800.0, cx=960.0, cy=600.0, dist=(-0.05, 0.0, 0.0, 0.0, 0.0)
+        )
+    )  # fmt: skip
+    stamps, poses = _drive([10.0, 20.0, 30.0, 40.0, 50.0] + [0.0] * 10 + [10.0, 20.0, 30.0, 40.0])
+    aside = (stamps > 4.5 * _S) & (stamps < 14.5 * _S)
+    poses[aside, :2] = (2.26, -15.71)
+    spans = [(0, 4 * _S), (15 * _S, 18 * _S)]
+    assert count_traversals(spans, stamps, poses, _R, _T, camera) == 2
