@@ -27,6 +27,7 @@ from pipeline.camera import (
     CameraModel,
     camera_centre,
     camera_rotation_from_view,
+    distort_normalized,
     project_points,
 )
 from pipeline.errors import InputError
@@ -294,8 +295,11 @@ def test_view_coverage_rejects_directions_a_strong_lens_folds_into_the_image() -
     t = -R @ np.array([0.0, 0.0, height_m])  # centre at the height of the vehicle point
     coverage = ViewCoverage(R, t, (E0, N0, 100.0), intrinsics)
     folded = np.array([[4.8 * 10.0, 10.0, height_m]])
+    # The polynomial lands it in the image; the camera model gives it no pixel.
+    naive = 800.0 * distort_normalized(np.array([[4.8, 0.0]]), np.array(intrinsics.dist))[0, 0] + 960.0
+    assert 0.0 < naive < 1920.0
     pixels, _ = project_points(folded, R, t, CameraModel.from_intrinsics(intrinsics))
-    assert 0.0 < pixels[0, 0] < 1920.0  # the naive projection lands in the image
+    assert np.isnan(pixels).all()
     assert not coverage.contains_point(E0 + 48.0, N0 + 10.0)
     assert not coverage.contains(np.array([[E0 + 48.0, N0 + 10.0]]))[0]
     assert coverage.contains_point(E0 + 5.0, N0 + 10.0)
