@@ -622,6 +622,7 @@ def _grouping_report(grouping: GroupingResult) -> StageReport:
 
 def _validate(final: FinalFit, ground: GroundPlaneFit, ambiguity: str, gates: GatesConfig) -> Verdict:
     """The gates on the final fit's evidence; an ambiguity or disagreeing traversals refuse too."""
+    position_parts, rotation_parts = final.std_parts()
     evidence = ValidationEvidence(
         traversals=final.traversals,
         tracks=len(final.tracks),
@@ -632,6 +633,8 @@ def _validate(final: FinalFit, ground: GroundPlaneFit, ambiguity: str, gates: Ga
         rotation_std_deg=final.rotation_std_deg,
         box_error_pct=100.0 * final.box_error_rel,
         extra_reasons=tuple(r for r in (ambiguity, final.check.disagreeing) if r),
+        position_std_parts=position_parts,
+        rotation_std_parts=rotation_parts,
     )
     return validate(evidence, gates)
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -60,6 +61,11 @@ class FinalFit:
     # vehicle_model.consider_covariance, with the detector's shift); zero where the boxes are the cuboid's.
     shape_covariance: FloatArray
     body: str = "the template"  # which body model the pose comes from, and why
+    gnss_offset_std_m: float = 0.0  # the GNSS offset common to every pose, in the fit's covariance
+
+    def std_parts(self) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
+        """Where the largest position std (m) and rotation std (deg) come from (`std_parts`)."""
+        return std_parts(self.covariance, self.fit.covariance, self.shape_covariance, self.gnss_offset_std_m)
 
     @property
     def position_std_m(self) -> float:
@@ -88,6 +94,37 @@ class FinalFit:
                 f"template cannot describe adds {body_m:.3f} m / {body_deg:.3f} deg",
             ),
         )
+
+
+def std_parts(
+    covariance: FloatArray, fit_covariance: FloatArray, shape_covariance: FloatArray, gnss_std_m: float
+) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
+    """Where the largest position std (m) and rotation std (deg) of a final covariance (6, 6) [w, C] come
+    from, as (source, std) pairs that add up in quadrature along that std's direction
+    (validation.STD_SOURCES): the fit (noise and geometry: `fit_covariance` without the GNSS offset
+    `gnss_std_m` it carries on its position block), that GNSS offset, the drive-pasts' scatter (what the
+    traversal check raised the fit's covariance by: `covariance - shape_covariance - fit_covariance`) and
+    the body shape the template cannot describe (`shape_covariance`). Sources of no variance (below 1e-9 of
+    the total: rounding) are left out."""
+    combined = covariance - shape_covariance  # combined_covariance: at least the fit's in every direction
+    found: list[tuple[tuple[str, float], ...]] = []
+    for block, gnss, unit in ((slice(3, 6), gnss_std_m, 1.0), (slice(0, 3), 0.0, math.degrees(1.0))):
+        _, vectors = np.linalg.eigh(covariance[block, block])
+        v = vectors[:, -1]
+
+        def along(M: FloatArray, b: slice = block, d: FloatArray = v) -> float:
+            return max(float(d @ M[b, b] @ d), 0.0)
+
+        fit = along(fit_covariance)
+        variances = [
+            ("fit", max(fit - gnss**2, 0.0)),
+            ("gnss", gnss**2),
+            ("drive-pasts", max(along(combined) - fit, 0.0)),
+            ("body", along(shape_covariance)),
+        ]
+        floor = 1e-9 * along(covariance)  # rounding, not a source
+        found.append(tuple((name, unit * math.sqrt(var)) for name, var in variances if var > floor))
+    return found[0], found[1]
 
 
 @dataclass(frozen=True, slots=True)
@@ -275,6 +312,7 @@ def final_fit(
         time_offset_std_s=time_offset_std_s,
         shape_covariance=shape_covariance,
         body=body,
+        gnss_offset_std_m=model_params.pose_bias_std_m,
     )
 
 

@@ -32,6 +32,21 @@ class ValidationEvidence:
     rotation_std_deg: float
     box_error_pct: float
     extra_reasons: tuple[str, ...] = ()
+    # Where the largest position / rotation std comes from: (source, std) pairs that add up in quadrature
+    # (m, deg; sources in STD_SOURCES), so a refusal on a std says what would lower it. Empty: not known.
+    position_std_parts: tuple[tuple[str, float], ...] = ()
+    rotation_std_parts: tuple[tuple[str, float], ...] = ()
+
+
+# The sources of a pose's std (final_fit.FinalFit.std_parts) and what each means to an operator.
+STD_SOURCES = {
+    "fit": "the fit: the boxes fix the pose only weakly in some direction (e.g. every pass along one "
+    "straight line)",
+    "drive-pasts": "the drive-pasts' disagreement: the pose moves when one of them is left out",
+    "body": "the vehicle's body shape, which the template cannot describe (and the detector's box "
+    "convention): the same in every drive-past, so more of them do not lower it",
+    "gnss": "the vehicle's GNSS offset, common to every pose",
+}
 
 
 def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:
@@ -59,13 +74,20 @@ def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:
     if not np.isfinite(e.position_std_m) or k * e.position_std_m > g.max_position_std_m:
         reasons.append(
             f"position std = {e.position_std_m:.3f} m ({k:g} sigma {k * e.position_std_m:.2f} m > "
-            f"{g.max_position_std_m} m): the data leave the camera position unfixed in some direction"
+            f"{g.max_position_std_m} m): "
+            + _std_source(
+                e.position_std_parts, "m", "the data leave the camera position unfixed in some direction"
+            )
         )
     if not np.isfinite(e.rotation_std_deg) or k * e.rotation_std_deg > g.max_rotation_std_deg:
         reasons.append(
             f"rotation std = {e.rotation_std_deg:.3f} deg ({k:g} sigma {k * e.rotation_std_deg:.2f} deg > "
-            f"{g.max_rotation_std_deg} deg): the data leave a rotation unfixed (e.g. all passes along one "
-            "straight line)"
+            f"{g.max_rotation_std_deg} deg): "
+            + _std_source(
+                e.rotation_std_parts,
+                "deg",
+                "the data leave a rotation unfixed (e.g. all passes along one straight line)",
+            )
         )
     if not np.isfinite(e.box_error_pct) or e.box_error_pct > g.max_box_error_pct:
         reasons.append(
@@ -137,3 +159,13 @@ def _was_absent(stamps: Stamps, in_view: np.ndarray, start_ns: int, end_ns: int,
     run_starts, run_ends = edges[::2], edges[1::2] - 1
     longest = np.max(window_stamps[run_ends] - window_stamps[run_starts])
     return bool(longest >= min_absence_ns)
+
+
+def _std_source(parts: tuple[tuple[str, float], ...], unit: str, unknown: str) -> str:
+    """What a refusal on a std says: its largest source and what that means, then every source's share (in
+    quadrature); `unknown` when the parts are not given or not finite."""
+    if not parts or not all(np.isfinite(std) for _, std in parts):
+        return unknown
+    ranked = sorted(parts, key=lambda part: -part[1])
+    listed = ", ".join(f"{name} {std:.3f} {unit}" for name, std in ranked if std > 0.0)
+    return f"mostly from {STD_SOURCES[ranked[0][0]]} (in quadrature: {listed})"

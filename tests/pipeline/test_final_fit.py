@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 from test_selection import CAMERA, FRAME_NS, PATHS, VEHICLE, hypothesis, poses_along, true_pose
 
 from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import project_points
-from pipeline.final_fit import final_fit, joint_fit
+from pipeline.final_fit import final_fit, joint_fit, std_parts
 from pipeline.refinement import RefinementParams
 from pipeline.selection import Scene, SelectionParams, refine_group
 from pipeline.validation import count_traversals
 from pipeline.vehicle import body_corners
-from pipeline.vehicle_model import ModelParams
+from pipeline.vehicle_model import ModelParams, dominating_covariance, largest_stds
 
 START_NS = 1_700_000_000_000_000_000
 TAIL = 15  # rows (1.5 s) of each drive kept beyond the view: the vehicle is out of view 3 s between them
@@ -68,3 +73,51 @@ def test_drive_pasts_count_only_as_far_as_the_leave_one_out_check_tells_them_apa
     # against each other, so they count once (and validation refuses); a minute apart they count twice.
     assert final.traversals == expected
     assert np.linalg.norm(final.fit.camera_centre - np.array([0.0, 0.0, 10.0])) < 1e-3
+
+
+def _spd(draw_matrix: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """A symmetric positive semi-definite (6, 6) from any (6, 6), in units of `scale` per axis."""
+    return np.asarray(np.outer(scale, scale) * (draw_matrix @ draw_matrix.T), dtype=np.float64)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    fit_m=arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0)),
+    scatter_m=arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0)),
+    shape_m=arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0)),
+    gnss=st.sampled_from([0.0, 0.05]),
+    body=st.booleans(),
+)
+def test_std_parts_add_up_to_the_largest_std_in_quadrature(
+    fit_m: np.ndarray, scatter_m: np.ndarray, shape_m: np.ndarray, gnss: float, body: bool
+) -> None:
+    scale = np.array([0.002, 0.002, 0.002, 0.1, 0.1, 0.1])  # rad, m
+    fit = _spd(fit_m, scale) + 1e-8 * np.eye(6)
+    fit[3:, 3:] += gnss**2 * np.eye(3)
+    combined = dominating_covariance(fit, _spd(scatter_m, scale))
+    shape = _spd(shape_m, scale) if body else np.zeros((6, 6))
+    total = combined + shape
+    position, rotation = std_parts(total, fit, shape, gnss)
+    largest_m, largest_deg = largest_stds(total)
+    assert math.sqrt(sum(std**2 for _, std in position)) == pytest.approx(largest_m, rel=1e-6)
+    assert math.sqrt(sum(std**2 for _, std in rotation)) == pytest.approx(largest_deg, rel=1e-6)
+    assert len({name for name, _ in position}) == len(position)
+    assert all(std > 0.0 for _, std in position + rotation)
+    if not body:
+        assert "body" not in dict(position) and "body" not in dict(rotation)
+    assert dict(position).get("gnss", 0.0) == pytest.approx(gnss)
+    assert "gnss" not in dict(rotation)
+
+
+def test_std_parts_name_the_source_that_dominates() -> None:
+    fit = np.diag([1e-6, 1e-6, 1e-6, 0.01**2, 0.01**2, 0.01**2])
+    fit[3:, 3:] += 0.05**2 * np.eye(3)
+    scatter = np.diag([1e-6, 1e-6, 1e-6, 0.3**2, 0.01**2, 0.01**2])  # drive-pasts disagree along x
+    shape = np.diag([0.0, 0.0, 0.004**2, 0.0, 0.0, 0.2**2])  # the body: height, and a turn about z
+    total = dominating_covariance(fit, scatter) + shape
+    position, rotation = std_parts(total, fit, shape, 0.05)
+    # The largest position std is along x: the scatter's 0.3 m over the fit's 0.01 m and the GNSS 0.05 m.
+    assert dict(position) == pytest.approx(
+        {"fit": 0.01, "gnss": 0.05, "drive-pasts": math.sqrt(0.3**2 - 0.01**2 - 0.05**2)}
+    )
+    assert dict(rotation) == pytest.approx({"fit": math.degrees(1e-3), "body": math.degrees(0.004)})

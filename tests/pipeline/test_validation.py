@@ -56,6 +56,29 @@ def test_each_gate_refuses_with_a_reason_naming_quantity_and_value(
     assert words in verdict.reasons[0]
 
 
+def test_a_std_refusal_names_its_largest_source_and_every_share() -> None:
+    evidence = replace(
+        GOOD,
+        position_std_m=0.25,
+        position_std_parts=(("fit", 0.05), ("gnss", 0.05), ("drive-pasts", 0.1), ("body", math.sqrt(0.0475))),
+        rotation_std_deg=0.3,
+        rotation_std_parts=(("fit", 0.06), ("drive-pasts", math.sqrt(0.3**2 - 0.06**2))),
+    )
+    position, rotation = validate(evidence, GatesConfig()).reasons
+    assert position.startswith(
+        "position std = 0.250 m (3 sigma 0.75 m > 0.5 m): mostly from the vehicle's body"
+    )
+    assert "more of them do not lower it" in position
+    assert position.endswith("(in quadrature: body 0.218 m, drive-pasts 0.100 m, fit 0.050 m, gnss 0.050 m)")
+    assert rotation.startswith(
+        "rotation std = 0.300 deg (3 sigma 0.90 deg > 0.5 deg): mostly from the drive-pasts"
+    )
+    assert rotation.endswith("(in quadrature: drive-pasts 0.294 deg, fit 0.060 deg)")
+    # Without its parts a std refusal says what it always said.
+    unknown = validate(replace(evidence, position_std_parts=()), GatesConfig()).reasons[0]
+    assert unknown.endswith("): the data leave the camera position unfixed in some direction")
+
+
 def test_std_gates_hold_at_three_sigma() -> None:
     """0.15 deg passes a 0.5 deg gate at 3 sigma (0.45); 0.17 deg does not (0.51)."""
     assert validate(replace(GOOD, rotation_std_deg=0.15), GatesConfig()).is_accepted
