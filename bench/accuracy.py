@@ -24,6 +24,8 @@ Columns (aggregated per preset over all cameras and seeds):
              offset minus the latency); target within 10 ms
   area       the calibration vehicle's detected box area / its data-sheet cuboid's rectangle, mean over
              frames where the cuboid lies wholly inside the image and the box is no merge or split
+  pos std from  runs refused on their position std, by its largest share (validation.STD_SOURCES): b the
+             body shape the template cannot describe, d the drive-pasts' disagreement, f the fit, g GNSS
 Exit code 0 when every target passes, 1 otherwise. Per-run failures are printed under the table.
 """
 
@@ -357,6 +359,20 @@ def beyond_reported(run: Run, sigmas: float = 3.0) -> bool:
     )
 
 
+def std_source(run: Run) -> str | None:
+    """The largest share (validation.STD_SOURCES) of the position std a run was refused on, '?' when its
+    reason does not say, None when it was not refused on it."""
+    from pipeline.validation import STD_SOURCES
+
+    for reason in run.get("reasons", []):
+        if reason.startswith("position std"):
+            return next((name for name, text in STD_SOURCES.items() if f"mostly from {text}" in reason), "?")
+    return None
+
+
+_SOURCE_TAGS = {"body": "b", "drive-pasts": "d", "fit": "f", "gnss": "g", "?": "?"}
+
+
 def run_seed(task: tuple[str, int, bool]) -> list[Run]:
     """simulate(preset, seed), calibrate() every camera, evaluate: one record per camera."""
     import numpy as np
@@ -502,6 +518,9 @@ def summarise(preset: str, runs: Sequence[Run]) -> dict[str, Any]:
         "offset_error_mean_ms": _mean([r.get("time_offset_error_ms") for r in accepted]),
         "offset_error_max_ms": _max([r.get("time_offset_error_ms") for r in accepted]),
         "box_area_ratio": _mean([r.get("box_area_ratio") for r in runs]),
+        "std_sources": {
+            name: count for name in _SOURCE_TAGS if (count := sum(std_source(r) == name for r in runs))
+        },
         "paper": PAPER.get(preset, ""),
         "target": target.text if target else "(none)",
         "failures": failures,
@@ -539,6 +558,7 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
         "lat ms",
         "lat err",
         "area",
+        "pos std from",
         "paper",
         "target",
         "result",
@@ -562,13 +582,14 @@ def format_table(summaries: Sequence[dict[str, Any]], false_accepts: int, errors
                 _fmt(s.get("latency_ms"), ".0f"),
                 _pair(s.get("offset_error_mean_ms"), s.get("offset_error_max_ms"), ".1f"),
                 _fmt(s.get("box_area_ratio"), ".3f"),
+                " ".join(f"{_SOURCE_TAGS[k]}{n}" for k, n in s.get("std_sources", {}).items()) or "-",
                 s["paper"],
                 s["target"],
                 s["result"],
             )
         )
     rows.append(
-        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "", "", "", "",
+        ("ALL", "", "", "", "", "", "", str(false_accepts), str(errors), "", "", "", "", "", "", "", "",
          "false accepts = 0", "PASS" if false_accepts == 0 and errors == 0 else "FAIL")
     )  # fmt: skip
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
