@@ -12,6 +12,7 @@ stand beside their reason; the measured values at the time of writing are in the
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from functools import cache
 
 import numpy as np
@@ -22,6 +23,7 @@ from pipeline.calibrate import CalibrationOutcome, PipelineParams, calibrate
 from pipeline.camera import rotation_angle_rad
 from pipeline.metrics import Evaluation, evaluate_against_ground_truth
 from pipeline.tracking import frames_from_detections, track_boxes
+from pipeline.vehicle_model import ModelParams
 from sim.simulate import SimulationResult, simulate
 
 CREATED_AT_NS = 1_700_000_000_000_000_000  # the result's creation time: the caller's clock
@@ -76,6 +78,25 @@ def test_sil_south_meets_the_papers_accuracy() -> None:
     uncertainty = outcome.result.uncertainty
     assert uncertainty is not None
     assert evaluation.position_error_m < 5.0 * uncertainty.position_std_m + 0.05
+
+
+def test_a_final_fit_stopped_before_converging_is_refused() -> None:
+    # The scene test_sil_south_meets_the_papers_accuracy accepts (its final fit converges in 7-9
+    # evaluations), with the solver allowed one evaluation per pass: the pose is not the optimum of its
+    # model, whatever the other gates say.
+    sim, _, _ = _run("sil-south", 0)
+    camera = sim.cameras[0]
+    outcome = calibrate(
+        calibration_inputs(sim, camera.camera_id),
+        PipelineParams(model=replace(ModelParams(), max_evaluations=1)),
+        np.random.default_rng(CALIBRATION_SEED),
+        created_at_ns=CREATED_AT_NS,
+    )
+    assert outcome.result.verdict.status == "refused"
+    assert (
+        "final fit: the solver stopped at its limit (2 evaluations) before converging, so the pose is not "
+        "its model's optimum"
+    ) in outcome.result.verdict.reasons
 
 
 def test_wide_distorted_lens_is_accepted() -> None:
