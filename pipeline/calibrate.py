@@ -626,7 +626,7 @@ def _validate(final: FinalFit, ground: GroundPlaneFit, ambiguity: str, gates: Ga
     position_parts, rotation_parts = final.std_parts()
     # A fit stopped at its evaluation limit is not its model's optimum, and its covariance describes a point
     # the solver was passing through (in 34 realistic scenes 1 final fit stopped there, at 159 evaluations;
-    # every accepted one of the benchmark converged, in 7-158).
+    # every one the benchmark accepts converged, in 7-98).
     unconverged = (
         ""
         if final.fit.converged
