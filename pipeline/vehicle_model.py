@@ -948,7 +948,7 @@ def _halves_disagree(
         reason = (
             f"traversals 1-{middle} and {middle + 1}-{len(clusters)} fitted apart differ by {shift:.2f} m / "
             f"{angle:.2f} deg, a chi-square of {chi2:.0f} (6 dof) > {params.holdout_pull_chi2:.0f}: "
-            "the camera may have moved between them"
+            "the camera may have moved between them, or the vehicle model fits their views differently"
         )
         return reason, difference
     return "", difference
