@@ -160,14 +160,23 @@ def distortion_chain(
             x, y = within_model(x, y, limit)
     if not camera.has_distortion:
         return dx, dy
-    k1, k2, p1, p2, k3 = camera.dist
-    r2 = x * x + y * y
-    radial_ = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-    j11 = radial_ + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
-    j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y  # = d yd / d x
-    j22 = radial_ + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+    _, j11, j12, j22 = _radial_and_jacobian(x, y, camera.dist)
     return j11[:, None] * dx + j12[:, None] * dy, j12[:, None] * dx + j22[:, None] * dy
+
+
+def _radial_and_jacobian(
+    x: FloatArray, y: FloatArray, dist: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The distortion model's radial factor at undistorted normalised (x, y) and its 2 x 2 Jacobian
+    d(xd, yd) / d(x, y) as j11, j12 (= j21), j22."""
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+    j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+    j22 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+    return radial, j11, j12, j22
 
 
 def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
@@ -192,9 +201,8 @@ def project_points_cam(points_cam: Points3, camera: CameraModel) -> Pixels:
     Points further off axis than the lens model holds (`CameraModel.undistorted_limit`) have no pixel: NaN.
     """
     check_shape(points_cam, "N,3", name="points_cam")
-    xy = points_cam[:, :2] / points_cam[:, 2:3]
-    if camera.has_distortion:
-        xy = distort_normalized(xy, camera.dist)
+    undistorted = points_cam[:, :2] / points_cam[:, 2:3]
+    xy = distort_normalized(undistorted, camera.dist) if camera.has_distortion else undistorted
     K = camera.K
     pixels = np.stack(
         [K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1
@@ -202,8 +210,7 @@ def project_points_cam(points_cam: Points3, camera: CameraModel) -> Pixels:
     limit = camera.undistorted_limit
     if not math.isinf(limit):
         with np.errstate(invalid="ignore"):
-            beyond = np.sum((points_cam[:, :2] / points_cam[:, 2:3]) ** 2, axis=1) > limit * limit
-        pixels[beyond] = np.nan
+            pixels[np.sum(undistorted**2, axis=1) > limit * limit] = np.nan
     return pixels
 
 
@@ -255,19 +262,15 @@ def _invert_distortion(xy_distorted: FloatArray, dist: FloatArray) -> FloatArray
     Starts from the distorted point; converges to ~1e-14 in a few steps for any lens whose model is
     monotonic over the image (OpenCV's own fixed-point loop stalls on strong barrel distortion).
     """
-    k1, k2, p1, p2, k3 = dist
+    _, _, p1, p2, _ = dist
     xy = xy_distorted.copy()
     for _ in range(30):
         x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+        radial, j11, j12, j22 = _radial_and_jacobian(x, y, dist)
+        j21 = j12
         fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xy_distorted[:, 0]
         fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - xy_distorted[:, 1]
-        j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
-        j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
-        j21 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
-        j22 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
         det = j11 * j22 - j12 * j21
         det = np.where(np.abs(det) < 1e-12, 1e-12, det)
         dx = (j22 * fx - j12 * fy) / det
