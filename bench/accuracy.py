@@ -1,10 +1,12 @@
 """Accuracy benchmark: every simulator preset (but `long`) over seeds, calibrate() on every camera, scored
 against the ground truth, beside the paper's figures and our targets. Not part of the test suite.
 
-    python -m bench.accuracy [--seeds 10] [--presets a,b,...] [--ideal] [--jobs 2] [--json out.json]
+    python -m bench.accuracy [--seeds 10] [--presets a,b,...] [--ideal] [--readout MS] [--jobs 2]
+                             [--json out.json]
 
-The world is the simulator's real one (shaped bodies, a biased detector, unknown latency, CAM V2X) unless
-`--ideal` asks for the first simulator's world (cuboid boxes, no latency, IMU poses as V2X).
+The world is the simulator's real one (shaped bodies, a biased detector, unknown latency, rolling shutters,
+CAM V2X) unless `--ideal` asks for the first simulator's world (cuboid boxes, no latency, global shutters,
+IMU poses as V2X). `--readout MS` gives every camera that rolling-shutter readout in either world.
 
 Per (preset, seed): simulate(preset, seed), then calibrate() for every camera with the true clock offset as
 the known `time_offset_ns`, and evaluate_against_ground_truth() of the result (accepted results count) and of
@@ -21,7 +23,7 @@ Columns (aggregated per preset over all cameras and seeds):
   cover      accepted runs whose position or rotation error exceeds 3 x the reported std / accepted runs
   lat ms     the cameras' true latency (detection stamp minus exposure), mean over runs (unknown to rsucal)
   lat err    accepted runs: |estimated time offset - true one| (ms), mean / max (the truth: vehicle clock
-             offset minus the latency); target within 10 ms
+             offset minus the latency, plus half the readout: the image's middle row's); target within 10 ms
   area       the calibration vehicle's detected box area / its data-sheet cuboid's rectangle, mean over
              frames where the cuboid lies wholly inside the image and the box is no merge or split
   pos std from  runs refused on their position std, by its largest share (validation.STD_SOURCES): b the
@@ -373,19 +375,19 @@ def std_source(run: Run) -> str | None:
 _SOURCE_TAGS = {"body": "b", "drive-pasts": "d", "fit": "f", "gnss": "g", "?": "?"}
 
 
-def run_seed(task: tuple[str, int, bool]) -> list[Run]:
+def run_seed(task: tuple[str, int, bool, float | None]) -> list[Run]:
     """simulate(preset, seed), calibrate() every camera, evaluate: one record per camera."""
     import numpy as np
 
     from pipeline.calibrate import PipelineParams, calibrate
-    from pipeline.metrics import evaluate_against_ground_truth, result_from_ground_truth
+    from pipeline.metrics import evaluate_against_ground_truth, result_from_ground_truth, true_time_offset_ns
     from sim.simulate import simulate
 
-    preset, seed, ideal = task
+    preset, seed, ideal, readout_s = task
     base: Run = {"preset": preset, "seed": seed, "ideal": ideal}
     try:
         started = time.perf_counter()
-        sim = simulate(preset, seed, ideal=ideal)
+        sim = simulate(preset, seed, ideal=ideal, readout_s=readout_s)
         simulate_s = time.perf_counter() - started
     except Exception as err:
         return [{**base, "camera": "*", "verdict": "error", "error": _describe(err), "reasons": []}]
@@ -401,7 +403,10 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
             "truth_traversals": truth.traversals,
             "truth_boxes": sum(f.calib_box is not None for f in truth.frames),
             "latency_ms": truth.latency_ns / 1e6,
-            "true_time_offset_ms": (truth.clock_offset_ns - truth.latency_ns) / 1e6,
+            "readout_ms": truth.readout_ns / 1e6,
+            # The offset of the image's middle row (the result's convention): with a rolling shutter it is
+            # exposed half the readout after the first row, whose time the stamp minus the latency is.
+            "true_time_offset_ms": true_time_offset_ns(truth) / 1e6,
             "vehicle_type": truth.vehicle_type,
             "box_area_ratio": box_area_ratio(truth),
         }
@@ -435,7 +440,7 @@ def run_seed(task: tuple[str, int, bool]) -> list[Run]:
                 time_offset_error_ms=(
                     None
                     if result.time_offset_ns is None
-                    else abs(result.time_offset_ns / 1e6 - (truth.clock_offset_ns - truth.latency_ns) / 1e6)
+                    else abs(result.time_offset_ns - true_time_offset_ns(truth)) / 1e6
                 ),
                 boxes_used=evaluation.boxes_used,
                 boxes_total=evaluation.boxes_total,
@@ -657,8 +662,12 @@ def _task_weight(preset: str) -> float:
     return len(config.cameras) * (config.traffic.count + 50) * (config.duration_s or 300.0)
 
 
-def _run_all(names: Sequence[str], seeds: range, jobs: int, ideal: bool) -> list[Run]:
-    tasks = sorted(((p, s, ideal) for p in names for s in seeds), key=lambda t: -_task_weight(t[0]))
+def _run_all(
+    names: Sequence[str], seeds: range, jobs: int, ideal: bool, readout_s: float | None = None
+) -> list[Run]:
+    tasks = sorted(
+        ((p, s, ideal, readout_s) for p in names for s in seeds), key=lambda t: -_task_weight(t[0])
+    )
     runs: list[Run] = []
     started = time.perf_counter()
 
@@ -694,6 +703,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--first-seed", type=int, default=0, help="seeds FIRST..FIRST+N-1 (default 0)")
     parser.add_argument("--presets", default="", help="comma-separated presets (default: all but long)")
     parser.add_argument("--ideal", action="store_true", help="the first simulator's world (see above)")
+    parser.add_argument(
+        "--readout",
+        type=float,
+        metavar="MS",
+        help="every camera's rolling-shutter readout (ms) in either world",
+    )
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--json", type=Path, help="also write every run and the summary here")
     parser.add_argument(
@@ -724,8 +739,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Now: the workers import the code as it is when they start.
         code = tree_state(["pipeline", "schemas", "sim"])
         seeds = range(args.first_seed, args.first_seed + args.seeds)
-        runs = _run_all(names, seeds, args.jobs, args.ideal)
+        if args.readout is not None and not 0.0 <= args.readout <= 1000.0:
+            parser.error(f"--readout {args.readout}: a readout time in ms, 0-1000")
+        readout_s = None if args.readout is None else args.readout / 1e3
+        runs = _run_all(names, seeds, args.jobs, args.ideal, readout_s)
         world = "IDEAL world (cuboid boxes, no latency, IMU poses)" if args.ideal else "real world"
+        if readout_s is not None:
+            world += f", every camera with a {args.readout:g} ms rolling-shutter readout"
         header = (
             f"rsucal accuracy benchmark, {world}: {len(names)} presets x seeds {seeds.start}.."
             f"{seeds.stop - 1}, every camera, known vehicle clock offset; {len(runs)} runs in "

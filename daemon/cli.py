@@ -166,7 +166,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         v = result.vehicle
         world = "ideal world" if result.is_ideal else "real world"
         latencies = ", ".join(
-            f"{t.camera_id} {t.latency_ns / 1e6:.0f} ms" for t in result.ground_truth.values()
+            f"{t.camera_id} {t.latency_ns / 1e6:.0f} ms"
+            + (f" (readout {t.readout_ns / 1e6:.0f} ms)" if t.readout_ns else "")
+            for t in result.ground_truth.values()
         )
         print(
             f"  {world}: calibration vehicle {truth.vehicle_type} {v.length:.2f} x {v.width:.2f} x "

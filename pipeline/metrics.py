@@ -301,6 +301,13 @@ def _in_truth_frame(
     return R_result, t_result + R_result @ shift
 
 
+def true_time_offset_ns(truth: GroundTruth) -> int:
+    """The simulated camera's true time offset (vehicle clock minus detection stamp) for the image's middle
+    row, the result's convention: its stamp is the first row's exposure plus the latency, and a rolling
+    shutter exposes the middle row half the readout later."""
+    return truth.clock_offset_ns - truth.latency_ns + truth.readout_ns // 2
+
+
 def evaluate_against_ground_truth(
     result: CalibrationResult, truth: GroundTruth, params: DeltaPParams = DeltaPParams()
 ) -> Evaluation:

@@ -82,6 +82,11 @@ class GroundTruth(StrictModel):
     latency_ns: int = Field(
         default=0, ge=0, description="detection stamp minus exposure time (unknown to rsucal)"
     )
+    readout_ns: int = Field(
+        default=0,
+        ge=0,
+        description="rolling shutter: last image row's exposure minus the first's (the stamp's), 0: global",
+    )
     world: Literal["real", "ideal"] = Field(default="ideal", description="the simulated world's kind")
     v2x: Literal["cam", "imu"] = Field(default="imu", description="CAM broadcasts or the IMU poses as V2X")
     vehicle_type: str | None = Field(default=None, description="the calibration vehicle's body type")

@@ -8,6 +8,9 @@ small for a detector, or when most of it is hidden behind nearer vehicles or sta
 In the real world (`RealDetector` given) bodies are shapes, and the box is that of the *visible* outline:
 the part of the body's silhouette (the convex hull of its projected vertices) that no nearer silhouette
 covers and that lies inside the image, measured on a fine grid, with edges that nothing covers kept exact.
+A real camera reads its rows out one after another (a rolling shutter): row v of a frame is exposed
+v / height of the camera's readout time after the first, so each vertex is placed where the vehicle was when
+the row it lands on was exposed (`exposed_points`; the ideal world's cameras read every row at once).
 Then what a detector gets wrong: a per-camera bias (scale, per-edge offsets), edge jitter correlated along
 each track (AR(1)), independent misses and misses in runs, wrong classes, two overlapping vehicles merged
 into one box or one split into two for a few frames, and short-lived false positives.
@@ -200,7 +203,9 @@ def hidden_fractions(
 class Instances:
     """Vehicles at camera frames: frame index (P,), footprint-centre poses (P, 6) local, the body (P,) as an
     index into the bodies' vertex arrays, ground distance (P,) m from the camera, class (P,), owner (P,)
-    vehicle index (0 = the calibration vehicle when present)."""
+    vehicle index (0 = the calibration vehicle when present). `poses` are at the exposure of the frame's
+    first row; `late_poses` (P, 6), when the camera has a rolling shutter, one readout time later (at its
+    last row)."""
 
     frame: IntArray
     poses: FloatArray
@@ -208,6 +213,45 @@ class Instances:
     distance: FloatArray
     cls: IntArray
     owner: IntArray
+    late_poses: FloatArray | None = None
+
+    def body_points(self, rows: IntArray, vertices: FloatArray) -> tuple[FloatArray, FloatArray | None]:
+        """World points (n, K, 3) of one body's vertices at the given rows, at the first row's exposure
+        and (None without a rolling shutter) at the last row's."""
+        early = _placed(self.poses[rows], vertices)
+        late = None if self.late_poses is None else _placed(self.late_poses[rows], vertices)
+        return early, late
+
+
+def _placed(poses: FloatArray, vertices: FloatArray) -> FloatArray:
+    R = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
+    return np.asarray(np.einsum("nij,kj->nki", R, vertices) + poses[:, None, :3], dtype=np.float64)
+
+
+def exposed_points(
+    early: FloatArray,
+    late: FloatArray | None,
+    R_cam_from_local: FloatArray,
+    t_cam_from_local: FloatArray,
+    lens: Lens,
+) -> FloatArray:
+    """Rolling shutter: points (..., 3) where they were when the image row they land on was exposed.
+
+    `early` is each point at the exposure of the frame's first row, `late` at its last row's (one readout
+    time later; None: every row at once). A point on row v is at early + (v / height) (late - early): linear
+    within the readout (tens of ms, over which a vehicle's motion is straight), with the row found by two
+    fixed-point steps (the row moves by a few pixels between them). Points that do not project keep `early`.
+    """
+    if late is None:
+        return early
+    shape = early.shape
+    start, step = early.reshape(-1, 3), (late - early).reshape(-1, 3)
+    points = start
+    for _ in range(2):
+        pixels, ok = lens.project_cam(points @ R_cam_from_local.T + t_cam_from_local)
+        share = np.where(ok, np.clip(np.nan_to_num(pixels[:, 1]) / lens.height, 0.0, 1.0), 0.0)
+        points = start + share[:, None] * step
+    return points.reshape(shape)
 
 
 @dataclass(frozen=True, eq=False)
@@ -261,9 +305,8 @@ def _project_rows(
     for b in np.unique(body_of):
         sel = np.flatnonzero(body_of == b)
         vertices = bodies[int(b)]
-        poses = instances.poses[rows[sel]]
-        R = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
-        world = np.einsum("nij,kj->nki", R, vertices) + poses[:, None, :3]
+        early, late = instances.body_points(rows[sel], vertices)
+        world = exposed_points(early, late, R_cam_from_local, t_cam_from_local, lens)
         cam = world.reshape(-1, 3) @ R_cam_from_local.T + t_cam_from_local
         flat, _ = lens.project_cam(cam)
         px = flat.reshape(len(sel), len(vertices), 2)
@@ -287,9 +330,8 @@ def _raw_boxes(
         rows = np.flatnonzero(instances.body == b)
         if len(rows) == 0:
             continue
-        poses = instances.poses[rows]
-        R = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
-        points = np.einsum("nij,kj->nki", R, vertices) + poses[:, None, :3]
+        early, late = instances.body_points(rows, vertices)
+        points = exposed_points(early, late, R_cam_from_local, t_cam_from_local, lens)
         projected = project_boxes(points, R_cam_from_local, t_cam_from_local, lens)
         raw[rows] = projected.raw
         projectable[rows] = projected.projectable

@@ -237,11 +237,14 @@ class TrafficSpec:
 class ClockSpec:
     """The camera pipeline's clock: a DetectionFrame's stamp is the exposure time plus a latency drawn per
     camera and seed within `latency_s` (unknown to rsucal), with a few ms of per-frame jitter, and an
-    optional slow drift (ppm of the elapsed time)."""
+    optional slow drift (ppm of the elapsed time). The stamp is that of the first image row's exposure: a
+    rolling shutter exposes row v of `height` rows v / height of the readout time later, the readout drawn
+    per camera and seed within `readout_s` ((0, 0): a global shutter)."""
 
     latency_s: tuple[float, float] = (0.0, 0.0)
     latency_jitter_s: float = 0.0
     drift_ppm: float = 0.0
+    readout_s: tuple[float, float] | None = None  # None: REAL_CLOCK's in the real world, 0 in the ideal
 
 
 @dataclass(frozen=True, slots=True)
@@ -711,7 +714,9 @@ REAL_DETECTOR_FLOOR = DetectorSpec(
     merge_rate=0.02,
     split_rate=0.002,
 )
-REAL_CLOCK = ClockSpec(latency_s=(0.04, 0.20), latency_jitter_s=0.003)
+# CMOS sensors of roadside cameras read a frame out in about 10-35 ms (1080p at 25-30 fps); global-shutter
+# ones at once.
+REAL_CLOCK = ClockSpec(latency_s=(0.04, 0.20), latency_jitter_s=0.003, readout_s=(0.0, 0.035))
 _FLOORED = (
     "box_jitter_px",
     "miss_rate",
@@ -741,10 +746,12 @@ def world_detector(config: ScenarioConfig) -> DetectorSpec:
 
 
 def world_clock(config: ScenarioConfig) -> ClockSpec:
-    """The camera clock: stamps at exposure in the ideal world, a preset's own latency or REAL_CLOCK's."""
+    """The camera clock: stamps at exposure in the ideal world, a preset's own latency or REAL_CLOCK's, and
+    REAL_CLOCK's rolling shutter unless the preset gives its own readout ((0, 0): a global shutter)."""
     if config.ideal:
         return ClockSpec()
-    return config.clock if config.clock.latency_s[1] > 0 else REAL_CLOCK
+    clock = config.clock if config.clock.latency_s[1] > 0 else REAL_CLOCK
+    return clock if clock.readout_s is not None else replace(clock, readout_s=REAL_CLOCK.readout_s)
 
 
 def world_v2x_mode(config: ScenarioConfig) -> str:

@@ -188,11 +188,13 @@ def _instances(
     lens: Lens,
     calib_vehicle: VehicleProfile,
     windows: tuple[tuple[float, float], ...],
+    readout_s: float = 0.0,
 ) -> tuple[Instances, _CalibrationTrack | None]:
     """All (frame, vehicle) pairs of one camera with the vehicle on the road at the frame's time and
     possibly in view (a conservative cull), plus the calibration vehicle's track at all its frames.
-    `vehicles[0]` is the calibration vehicle: owner 0 in the instances; vehicle i wears body i."""
-    frames, poses, cls, owner = [], [], [], []
+    `vehicles[0]` is the calibration vehicle: owner 0 in the instances; vehicle i wears body i. With a
+    rolling shutter (`readout_s` > 0) each instance also has its pose at the frame's last row."""
+    frames, poses, late, cls, owner = [], [], [], [], []
     calib: _CalibrationTrack | None = None
     R, t = pose.R_cam_from_local, pose.t_cam_from_local
     view_bounds = lens.view_bounds()
@@ -214,6 +216,9 @@ def _instances(
             )
         frames.append(rows[visible])
         poses.append(centre[visible])
+        if readout_s > 0:
+            at = np.minimum(times[rows[visible]] + readout_s, vehicle.t_end)
+            late.append(sample_vehicle(vehicle, at, ground).centre_poses)
         cls.append(np.full(int(visible.sum()), vehicle.cls))
         owner.append(np.full(int(visible.sum()), index))
     centre_poses = np.concatenate(poses) if poses else np.zeros((0, 6))
@@ -221,7 +226,9 @@ def _instances(
     distance = np.hypot(*(centre_poses[:, :2] - camera_position(R, t)[:2]).T)
     frame_all = np.concatenate(frames).astype(np.int64) if frames else np.zeros(0, dtype=np.int64)
     cls_all = np.concatenate(cls).astype(np.int64) if cls else np.zeros(0, dtype=np.int64)
-    return Instances(frame_all, centre_poses, owner_all, distance, cls_all, owner_all), calib
+    late_poses = (np.concatenate(late) if late else np.zeros((0, 6))) if readout_s > 0 else None
+    instances = Instances(frame_all, centre_poses, owner_all, distance, cls_all, owner_all, late_poses)
+    return instances, calib
 
 
 def _traversal_labels(t: FloatArray, windows: tuple[tuple[float, float], ...]) -> np.ndarray:
@@ -492,9 +499,13 @@ def _cam_broadcasts(
     ]
 
 
-def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> SimulationResult:
-    """Simulate one scenario; the same (preset, seed, ideal) always gives the same result. `ideal` runs the
-    scene in the first simulator's world (see sim.presets.ideal)."""
+def simulate(
+    preset: str | ScenarioConfig, seed: int, ideal: bool = False, readout_s: float | None = None
+) -> SimulationResult:
+    """Simulate one scenario; the same (preset, seed, ideal, readout_s) always gives the same result.
+    `ideal` runs the scene in the first simulator's world (see sim.presets.ideal); `readout_s` gives every
+    camera that rolling-shutter readout instead of the world's (0 in the ideal world, drawn in the real
+    one)."""
     config = resolve_config(preset)
     if ideal:
         config = ideal_world(config)
@@ -577,6 +588,10 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
         times = _frame_times(traffic.end_s, detector.fps, detector.frame_jitter_s, rng["frames"])
         real_rng = _real_rng(seed, config.name, 100 + index)
         stamps, latency_ns = _camera_stamps(times, start_ns, clock, real_rng)
+        low, high = clock.readout_s or (0.0, 0.0)
+        # Its own generator: the other draws do not move.
+        readout = float(_real_rng(seed, config.name, 200 + index).uniform(low, high)) if high > 0 else 0.0
+        readout = readout if readout_s is None else readout_s
         lens = Lens.from_intrinsics(camera.intrinsics)
         real = None if config.ideal else RealDetector.draw(detector, real_rng)
         segments = _camera_poses(camera)
@@ -588,7 +603,14 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
             first = int(np.searchsorted(segment, n, side="left"))
             last = int(np.searchsorted(segment, n, side="right"))
             instances, seg_calib = _instances(
-                vehicles, times[first:last], ground, pose, lens, calib_vehicle, traffic.traversal_windows
+                vehicles,
+                times[first:last],
+                ground,
+                pose,
+                lens,
+                calib_vehicle,
+                traffic.traversal_windows,
+                readout,
             )
             parts.append(
                 render_frames(
@@ -651,6 +673,7 @@ def simulate(preset: str | ScenarioConfig, seed: int, ideal: bool = False) -> Si
             times,
             start_ns,
             latency_ns,
+            round(readout * 1e9),
             rendered,
             calib,
             calib_vehicle,
@@ -705,6 +728,7 @@ def _ground_truth(
     times: FloatArray,
     start_ns: int,
     latency_ns: int,
+    readout_ns: int,
     rendered: RenderedFrames,
     calib: _CalibrationTrack | None,
     calib_vehicle: VehicleProfile,
@@ -793,6 +817,7 @@ def _ground_truth(
         clock_offset_ns=config.pose.clock_offset_ns,
         traversals=len(detected),
         latency_ns=latency_ns,
+        readout_ns=readout_ns,
         world="ideal" if config.ideal else "real",
         v2x="cam" if v2x_mode == "cam" else "imu",
         vehicle_type=calib_shape.vehicle_type,

@@ -18,7 +18,7 @@ import pytest
 
 from daemon.offline import inputs_from_simulation as calibration_inputs
 from pipeline.calibrate import CalibrationOutcome, PipelineParams, calibrate
-from pipeline.metrics import Evaluation, evaluate_against_ground_truth
+from pipeline.metrics import Evaluation, evaluate_against_ground_truth, true_time_offset_ns
 from sim.presets import look_at
 from sim.simulate import resolve_config, simulate
 
@@ -31,8 +31,8 @@ CALIBRATION_SEED = 0
 
 @cache
 def _run(preset: str, seed: int, camera_index: int = 0) -> tuple[CalibrationOutcome, Evaluation, float]:
-    """Calibrate one camera of the scene (default its first) on the assumed clock 0; the true offset (ms)
-    comes back too."""
+    """Calibrate one camera of the scene (default its first) on the assumed clock 0; the true offset (ms, of
+    the image's middle row) comes back too."""
     sim = simulate(preset, seed=seed)
     camera = sim.cameras[camera_index]
     truth = sim.ground_truth[camera.camera_id]
@@ -42,7 +42,7 @@ def _run(preset: str, seed: int, camera_index: int = 0) -> tuple[CalibrationOutc
         inputs, PipelineParams(), np.random.default_rng(CALIBRATION_SEED), created_at_ns=CREATED_AT_NS
     )
     evaluation = evaluate_against_ground_truth(outcome.result, truth)
-    return outcome, evaluation, (truth.clock_offset_ns - truth.latency_ns) / 1e6
+    return outcome, evaluation, true_time_offset_ns(truth) / 1e6
 
 
 def _stage_notes(outcome: CalibrationOutcome, stage: str) -> str:
@@ -50,24 +50,32 @@ def _stage_notes(outcome: CalibrationOutcome, stage: str) -> str:
 
 
 def _assert_right_or_refused(outcome: CalibrationOutcome, evaluation: Evaluation) -> None:
-    """Accepted only within the false-accept limits; any pose given lies within 3 of its reported stds."""
+    """Accepted only within the false-accept limits; any pose given lies within 3 of its reported stds,
+    unless it is refused because the vehicle was seen on fewer than two drive-pasts: then nothing confirms
+    that the track was the calibration vehicle's, and a std (noise and model, given that track) says nothing
+    about a pose fitted to another vehicle (truck seed 0 with a rolling shutter: 18 m off, std 1.9 m,
+    refused so)."""
     result = outcome.result
     if result.verdict.status == "accepted":
         assert evaluation.position_error_m is not None and evaluation.position_error_m <= 0.5
         assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg <= 0.5
     else:
         assert result.verdict.reasons
-    if result.uncertainty is not None and evaluation.position_error_m is not None:
+    unconfirmed = any(
+        reason.startswith(("traversals = 0 <", "traversals = 1 <")) for reason in result.verdict.reasons
+    )
+    if result.uncertainty is not None and evaluation.position_error_m is not None and not unconfirmed:
         assert evaluation.position_error_m <= 3.0 * result.uncertainty.position_std_m
         assert evaluation.rotation_error_deg is not None
         assert evaluation.rotation_error_deg <= 3.0 * result.uncertainty.rotation_std_deg
 
 
-@pytest.mark.parametrize(("preset", "seed"), [("occluded", 2), ("slope", 0)])
+@pytest.mark.parametrize(("preset", "seed"), [("occluded", 2), ("slope", 4)])
 def test_an_unknown_latency_is_found_through_the_grouping_and_estimated(preset: str, seed: int) -> None:
-    # On the assumed clock (0 ms against a true -162 / -115 ms) opposite drive-pasts' hypotheses lie metres
-    # apart and no group forms (session 4: "no two hypotheses agree"). The clock scan finds a clock where
-    # they agree, the final fit estimates the offset from there.
+    # On the assumed clock (0 ms against a true -169 ms for slope seed 4, of the middle row) opposite
+    # drive-pasts' hypotheses lie metres apart and no group forms (session 4: "no two hypotheses agree").
+    # The clock scan finds a clock where they agree, the final fit estimates the offset from there (slope
+    # seed 4 at the time of writing: 5.9 ms off).
     outcome, evaluation, true_offset_ms = _run(preset, seed)
     assert "the assumed clock grouped no two drive-pasts" in _stage_notes(outcome, "clock scan")
     offset_ns = outcome.result.time_offset_ns
@@ -87,7 +95,7 @@ def test_no_calibration_vehicle_is_refused_on_every_clock() -> None:
 
 
 @pytest.mark.parametrize(
-    ("preset", "seed", "camera_index"), [("slope", 4, 0), ("sil-west", 0, 1), ("van", 0, 0)]
+    ("preset", "seed", "camera_index"), [("slope", 4, 0), ("sil-west", 0, 1), ("van", 3, 0)]
 )
 def test_the_reported_uncertainty_covers_a_body_the_template_cannot_describe(
     preset: str, seed: int, camera_index: int
@@ -96,7 +104,9 @@ def test_the_reported_uncertainty_covers_a_body_the_template_cannot_describe(
     # consider covariance (session 5, measured: slope seed 4 accepted 0.144 m / 0.320 deg off with a
     # rotation std of 0.051 deg; sil-west seed 0's west-arm 0.252 m / 0.553 deg against 0.155 deg; van seed
     # 0, where cross-validation kept the cuboid, 0.514 m against 0.136 m). Each must now be within 3 of its
-    # stds, or refused with a reason and no pose.
+    # stds, or refused with a reason and no pose. Van seed 0 reaches no pose since cameras have a rolling
+    # shutter; van seed 3, whose boxes reject the cuboid body, stands in (0.13 m / 0.09 deg off, stds 0.24 m
+    # / 0.33 deg).
     outcome, evaluation, _ = _run(preset, seed, camera_index)
     _assert_right_or_refused(outcome, evaluation)
     assert outcome.result.uncertainty is not None  # a pose was reached: the covering is what is tested
@@ -128,7 +138,9 @@ def test_boxes_that_reject_the_cuboid_body_are_fitted_with_the_template() -> Non
     # van seed 0: cross-validation over its drive-pasts preferred the cuboid, whose pose was 0.51 m / 0.29
     # deg off (session 6); the boxes reject the cuboid body far beyond chance (the template fit's departure
     # from it), so the cuboid is no candidate and the pose is the template's (measured 0.27 m / 0.13 deg).
-    outcome, evaluation, _ = _run("van", 0, 0)
+    # Since cameras have a rolling shutter van seed 0 reaches no pose; seed 3 (chi-square 1516, 0.13 m /
+    # 0.09 deg off) shows the same.
+    outcome, evaluation, _ = _run("van", 3, 0)
     notes = _stage_notes(outcome, "final fit")
     assert "body the template: the boxes reject the cuboid body" in notes, notes
     _assert_right_or_refused(outcome, evaluation)

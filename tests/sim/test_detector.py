@@ -25,6 +25,7 @@ from sim.detector import (
     _gross_errors,
     _missed_in_runs,
     _visible_outlines,
+    exposed_points,
 )
 from sim.lens import Lens
 from sim.presets import DetectorSpec
@@ -206,3 +207,51 @@ def test_the_camera_bias_scales_and_shifts_boxes_but_never_moves_a_border_edge()
     drawn = RealDetector.draw(DetectorSpec(scale_bias=0.04, edge_bias_px=2.5), np.random.default_rng(3))
     assert abs(drawn.scale - 1.0) <= 0.04 and drawn.edge_offsets_px.shape == (4,)
     assert math.isfinite(float(drawn.edge_offsets_px.sum()))
+
+
+@given(
+    st.floats(-6.0, 6.0),  # lateral position (m) of a point 20 m ahead
+    st.floats(-4.0, 4.0),  # its height offset
+    st.floats(-20.0, 20.0),  # the vehicle's velocity across and along (m/s)
+    st.floats(-20.0, 20.0),
+    st.floats(0.0, 0.04),  # readout (s)
+)
+@settings(max_examples=60, deadline=None)
+def test_a_rolling_shutter_places_each_point_where_it_was_when_its_row_was_exposed(
+    x: float, y: float, vx: float, vz: float, readout: float
+) -> None:
+    # A point moving at constant velocity: at the exposure of row v it is at p0 + (v / height) readout vel.
+    # The returned point must lie on that line, at the share its own row gives (to a hundredth of a pixel's
+    # time: the row is found by iteration).
+    R, t = np.eye(3), np.zeros(3)
+    early = np.array([[[x, y, 20.0]]])
+    velocity = np.array([vx, 0.0, vz])
+    late = early + readout * velocity
+    exposed = exposed_points(early, late, R, t, LENS)
+    pixel, ok = LENS.project_cam(exposed.reshape(-1, 3))
+    if not ok[0]:
+        return
+    share = float(np.clip(pixel[0, 1] / LENS.height, 0.0, 1.0))
+    expected = early + share * (late - early)
+    # Error of the fixed point after two steps: the row moves by at most |velocity| readout f / z between
+    # them (under 0.6 px here), so its time by a share of that over the height.
+    assert np.allclose(exposed, expected, atol=1e-3)
+
+
+def test_without_a_rolling_shutter_the_points_are_the_frames_own() -> None:
+    early = np.array([[[1.0, 2.0, 20.0], [0.0, 0.0, 15.0]]])
+    assert exposed_points(early, None, np.eye(3), np.zeros(3), LENS) is early
+
+
+def test_the_bottom_row_sees_the_vehicle_one_readout_later_than_the_top_row() -> None:
+    # Two points on the same vertical line, one imaged near the top and one near the bottom, moving
+    # sideways at 10 m/s, readout 30 ms: the lower one is exposed about 30 ms x (row difference / height)
+    # later, so it has moved further by 10 m/s times that.
+    z = 20.0
+    top_y, bottom_y = -0.45 * LENS.height / 1400.0 * z, 0.45 * LENS.height / 1400.0 * z
+    early = np.array([[[0.0, top_y, z], [0.0, bottom_y, z]]])
+    late = early + np.array([0.3, 0.0, 0.0])  # 10 m/s x 0.03 s
+    exposed = exposed_points(early, late, np.eye(3), np.zeros(3), LENS)
+    moved = exposed[0, :, 0]
+    assert moved[0] == pytest.approx(0.3 * 0.05, abs=2e-3)  # row 60 of 1200
+    assert moved[1] == pytest.approx(0.3 * 0.95, abs=2e-3)

@@ -51,6 +51,47 @@ def test_detections_are_stamped_after_exposure_by_the_cameras_latency(north: Sim
     assert [f.stamp_ns for f in north.detections["north"]] == [f.stamp_ns for f in truth.frames]
 
 
+def test_each_camera_draws_a_rolling_shutter_readout_and_the_ideal_world_has_none(
+    north: SimulationResult,
+) -> None:
+    low_s, high_s = REAL_CLOCK.readout_s or (0.0, 0.0)
+    assert high_s > 0.0 and low_s * 1e9 <= north.ground_truth["north"].readout_ns <= high_s * 1e9
+    ideal = simulate(shrink_scene(PRESETS["sil-north"], traffic=5, ideal=True), seed=4)
+    assert ideal.ground_truth["north"].readout_ns == 0
+
+
+def test_a_rolling_shutter_shows_each_box_later_by_its_rows_share_of_the_readout() -> None:
+    # The same scene with a global shutter and with a 30 ms readout: every other draw is the same, so the
+    # calibration vehicle's visible box moves by its own rate times the readout's share at its rows. Checked
+    # against the global-shutter boxes' rate along the track (frames 0.1 s apart), not the simulator's code.
+    config = shrink(PRESETS["sil-north"], routes=("S>N",), traffic=5)
+    boxes = {}
+    for readout in (0.0, 0.03):
+        clock = replace(REAL_CLOCK, readout_s=(readout, readout))
+        result = simulate(replace(config, clock=clock), seed=2)
+        truth = result.ground_truth["north"]
+        assert truth.readout_ns == round(readout * 1e9)
+        boxes[readout] = np.array([f.visible_box or (math.nan,) * 4 for f in truth.frames])
+        width, height = truth.intrinsics.width, truth.intrinsics.height
+    still, rolling = boxes[0.0], boxes[0.03]
+
+    def inside(b: np.ndarray) -> np.ndarray:  # not cut by the image border (a cut edge does not move)
+        with np.errstate(invalid="ignore"):
+            return (b[:, 0] > 2) & (b[:, 1] > 2) & (b[:, 2] < width - 2) & (b[:, 3] < height - 2)
+
+    seen = np.flatnonzero(inside(still) & inside(rolling))
+    inner = seen[np.isin(seen - 1, seen) & np.isin(seen + 1, seen)]
+    assert len(inner) > 30
+    rate = (still[inner + 1] - still[inner - 1]) / 0.2  # px/s (10 fps)
+    top, bottom = still[inner, 1], still[inner, 3]
+    # The top and bottom edges at their own rows' times (the side edges' rows lie somewhere between, and
+    # which vertex forms them changes as the body turns).
+    expected_y = np.column_stack([rate[:, 1] * 0.03 * top / height, rate[:, 3] * 0.03 * bottom / height])
+    moved = rolling[inner] - still[inner]
+    assert np.max(np.abs(moved)) > 3.0  # the readout matters: several pixels on the nearest boxes
+    assert np.abs(moved[:, [1, 3]] - expected_y).max() < 0.1 * np.max(np.abs(moved)) + 0.3
+
+
 def test_the_latency_preset_lags_by_250_ms() -> None:
     result = simulate(shrink(PRESETS["latency"], routes=("S>N",), traffic=5), seed=1)
     assert result.ground_truth["north"].latency_ns == 250_000_000
