@@ -86,7 +86,8 @@ class FinalFit:
             0,
             (
                 f"body {self.body}; time offset {self.time_offset_ns(prior_ns) / 1e6:.1f} ms "
-                f"+- {self.time_offset_std_s * 1e3:.1f} ms, box rms {self.fit.box_rmse_px:.2f} px, "
+                f"+- {self.time_offset_std_s * 1e3:.1f} ms, readout {self.fit.readout_s * 1e3:.1f} ms "
+                f"+- {self.fit.readout_std_s * 1e3:.1f} ms, box rms {self.fit.box_rmse_px:.2f} px, "
                 f"box error {100 * self.box_error_rel:.1f} %, fit std {self.fit.position_std_m:.3f} m / "
                 f"{self.fit.rotation_std_deg:.3f} deg, "
                 f"{self.check.traversals} traversals, leaving one out moves the pose up to "
@@ -190,6 +191,9 @@ def joint_fit(chosen: Candidate, scene: Scene, model: ModelParams, min_time_shif
     time_offset_std_s = fit.time_shift_std_s  # what the data say about the clock, held or not
     if abs(fit.time_shift_s) <= shift_limit:
         model_params = replace(model_params, time_shift_std_s=1e-9)
+    # The readout likewise: where the data do not show one, the camera is taken to read every row at once.
+    if abs(fit.readout_s) <= max(3.0 * fit.readout_std_s, model.min_readout_s):
+        model_params = replace(model_params, readout_std_s=1e-9)
     if model_params != finding:
         with contextlib.suppress(DegenerateGeometry):  # keep the finding fit
             fit = fit_vehicle_model(
@@ -265,7 +269,7 @@ def final_fit(
     # The left-out fits of the chosen class serve the traversal check too.
     check = check_traversals(left_out, trajectory, camera, vehicle, model_params, map_fn)
     boxes = unbiased_boxes(np.concatenate([t.boxes for t in used]), fit.bias)
-    footprints = model_footprints(fit, used, trajectory, vehicle)
+    footprints = model_footprints(fit, used, trajectory, camera, vehicle)
     summary = delta_p(boxes, footprints, fit.R_cam_from_local, fit.t_cam_from_local, camera).summary()
     value = summary.delta_p_mean_m
     # The template is an approximation of a body whose silhouette the boxes show is not its cuboid: what it

@@ -59,8 +59,8 @@ from pipeline.refinement import (
 from pipeline.vehicle import body_points_to_world, rotated_body_points
 from schemas.common import VehicleProfile
 
-_POSE, _DELTA, _SHAPE, _BIAS = slice(0, 6), 6, slice(7, 13), slice(13, 18)
-N_PARAMS = 18
+_POSE, _DELTA, _SHAPE, _BIAS, _READOUT = slice(0, 6), 6, slice(7, 13), slice(13, 18), 18
+N_PARAMS = 19
 _HELD = 1e-6  # prior std of a parameter held at its start
 # Tracks more than this apart in time (s) are separate drive-pasts for the leave-one-out check.
 TRAVERSAL_GAP_S = 5.0
@@ -88,6 +88,15 @@ class ModelParams:
     f_scale_px: float = 2.0
     max_evaluations: int = 100  # per pass (the weights of the second come from the first's residuals)
     time_shift_std_s: float = 0.5  # a configured or last estimated offset is a prior, not a requirement
+    # A rolling shutter exposes the image's rows one after another: a box on row v shows the trajectory
+    # (v / height - 1/2) x readout later than one on the middle row (whose time the time shift is). CMOS
+    # roadside cameras read a frame in 10-35 ms, global-shutter ones at once; negative when the sensor is
+    # read bottom-up (a flipped image).
+    readout_std_s: float = 0.02
+    readout_s: float = 0.0  # the prior's mean
+    # A fitted readout within max(3 std, this) of 0 is held at 0 (a global shutter): left free it absorbs
+    # what else varies with the image row (the first simulator's drifting IMU poses: -2.5 +- 0.8 ms).
+    min_readout_s: float = 0.005
     # Template: clearance and shoulder heights (m), roof span ends (m along the body) and roof inset (m).
     shape_std: tuple[float, float, float, float, float, float] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4)
     scale_std: float = 0.1  # detector box scale about its centre
@@ -145,15 +154,18 @@ class ModelParams:
             + [self.scale_std]
             + [self.shift_std_px if self.fit_shift else _HELD] * 2
             + [self.grow_std_px] * 2
+            + [self.readout_std_s]
         )
 
 
 @dataclass(frozen=True, slots=True)
 class ModelFit:
     """The joint fit. Pose as in `refinement.Refinement` (local frame); covariance (6, 6) of [w, C], the
-    marginal block of the full 17-parameter sandwich covariance, plus pose_bias_std_m^2 on C.
+    marginal block of the full N_PARAMS-parameter sandwich covariance, plus pose_bias_std_m^2 on C.
 
-    time_shift_s / time_shift_std_s: delta (the box stamped t shows the trajectory at t - delta).
+    time_shift_s / time_shift_std_s: delta (the box stamped t shows the trajectory at t - delta, on the
+    image's middle row); readout_s / readout_std_s: the rolling shutter's readout time (a box centred on row
+    v of an image `height` rows tall shows the trajectory at t - delta + readout_s (v / height - 1/2)).
     shape (5,) SHAPE_NAMES, bias (5,) BIAS_NAMES, with their stds.
     residuals_px (N, 4): model box minus detected box, NaN on clipped edges; box_track_ids, stamps (N,).
     """
@@ -183,6 +195,8 @@ class ModelFit:
     row_scale_px: FloatArray = field(repr=False)  # (N, 4) each used residual's effective std (NaN unused)
     edge_fraction: FloatArray = field(repr=False)  # (4,) per-edge model misfit as a share of the box height
     rho: float = 0.0  # residual correlation from frame to frame
+    readout_s: float = 0.0
+    readout_std_s: float = 0.0
 
     def footprint_body_frame(self, vehicle: VehicleProfile) -> FloatArray:
         """The fitted template's contact with the road: the wheels' rectangle (4, 3), vehicle box frame."""
@@ -270,6 +284,17 @@ class _Data:
     track_ids: IntArray
     stamps: Stamps
     used: BoolArray  # (N, 4)
+    # (N,) the box centre's row / the image height, minus 1/2: when the readout reached it, from the middle
+    row_share: FloatArray
+    # (N, 4) px per second of readout: how far each edge moves between the exposure of the box centre's row
+    # and of the row of the point forming it, from the model's rate of the edge (_Model.set_skew). A rolling
+    # shutter's box at readout r shows edge k at boxes[:, k] - r * skew[:, k] had every row been exposed
+    # with the centre's.
+    skew: FloatArray
+
+    def corrected(self, readout_s: float) -> Boxes:
+        """The boxes as if every row had been exposed with the box centre's (see `skew`)."""
+        return self.boxes if readout_s == 0.0 else self.boxes - readout_s * self.skew
 
 
 def fit_vehicle_model(
@@ -294,11 +319,13 @@ def fit_vehicle_model(
     C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
     mean = np.zeros(N_PARAMS)
     mean[_SHAPE] = cuboid_shape(vehicle)
+    mean[_READOUT] = params.readout_s
     prior_std = params.prior_std()
     model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
+    model.set_skew(mean)
     scene_range = _scene_range(model, C0)
     x_scale = np.concatenate(
-        [[1.0 / scene_range] * 3, [1.0] * 3, [0.05], [0.1] * len(SHAPE_NAMES), [0.01], [1.0] * 4]
+        [[1.0 / scene_range] * 3, [1.0] * 3, [0.05], [0.1] * len(SHAPE_NAMES), [0.01], [1.0] * 4, [0.01]]
     )
     # Two passes: the data rows are weighted against the priors and each other by the residuals' effective
     # std (per edge and box size, times the square root of their correlation's variance inflation), which
@@ -310,6 +337,7 @@ def fit_vehicle_model(
             model.data_scale = np.full(model.data_rows, 2.0 * params.f_scale_px)
             model.f_scale = 0.5
         else:
+            model.set_skew(x)  # from the first pass's solution: the start's clock may be far off
             model.weigh(x)
         solution = least_squares(
             model.residuals,
@@ -395,10 +423,35 @@ class _Model:
         self.f_scale = 2.0 / inflation  # the loss bends at 2 of a row's own std
         self._cache = {}  # rows are scaled anew
 
+    def set_skew(self, x: FloatArray) -> None:
+        """The data's skew (_Data.skew) from the model at x: each edge's rate, and the row of the point that
+        forms it. Noise-free, where the boxes' differences along a track would put their noise into the
+        readout's regressor; held for the fit (rates and rows barely change with the small moves of the
+        pose a fit makes from its start)."""
+        step = self.params.shape_step
+        later = x.copy()
+        later[_DELTA] -= step  # the trajectory `step` later
+        now, cam, corner, _ = self.raw(x)
+        then, _, _, _ = self.raw(later)
+        rate = np.nan_to_num((then - now) / step)
+        n = len(now)
+        edge_points = cam[np.arange(n)[:, None], corner].reshape(-1, 3)
+        rows = _project(edge_points, self.camera, self.params.min_depth_m)[:, 1].reshape(n, 4)
+        boxes = self.data.boxes
+        rows[:, 1], rows[:, 3] = boxes[:, 1], boxes[:, 3]  # the top and bottom edges' rows are measured
+        rows_apart = np.nan_to_num(rows - 0.5 * (boxes[:, 1] + boxes[:, 3])[:, None])
+        self.data = replace(self.data, skew=rate * rows_apart / self.camera.height)
+        self._cache = {}
+
+    def poses_at(self, x: FloatArray) -> FloatArray:
+        """The vehicle's pose (N, 6) when each box's centre row was exposed: its stamp minus the time shift
+        (of the image's middle row), plus the readout's share from there to the box centre's row."""
+        return self.sampler.at(self.data.t_s - x[_DELTA] + x[_READOUT] * self.data.row_share)
+
     # Raw tight boxes of the template and the points forming their edges.
     def raw(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation]:
         R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
-        poses = self.sampler.at(self.data.t_s - x[_DELTA])
+        poses = self.poses_at(x)
         world = body_points_to_world(poses, template_points(x[_SHAPE], self.vehicle), self.vehicle)
         n, k = world.shape[:2]
         cam = _camera_points(world.reshape(-1, 3), R, C)
@@ -456,7 +509,7 @@ class _Model:
         if "x" in self._cache and np.array_equal(self._cache["x"], x):
             return
         R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
-        poses = self.sampler.at(self.data.t_s - x[_DELTA])
+        poses = self.poses_at(x)
         R_body = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
         world = rotated_body_points(R_body, poses, template_points(x[_SHAPE], self.vehicle), self.vehicle)
         n, k = world.shape[:2]
@@ -465,7 +518,7 @@ class _Model:
         raw, corner = _tight_boxes(uv)
         model = self.biased(raw, x[_BIAS])
         bi, ei = self.box_index, self.edge_index
-        residual = model[bi, ei] - self.data.boxes[bi, ei]
+        residual = model[bi, ei] - self.data.corrected(float(x[_READOUT]))[bi, ei]
         prior_r = ((x - self.mean) * self.prior_weight)[self.has_prior]
         self._cache = {
             "x": x.copy(),
@@ -503,11 +556,13 @@ class _Model:
         xp[_DELTA] += step
         raw_p, _, _, _ = self.raw(xp)
         J[:, _DELTA] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
+        # The same time, later by the centre row's share; and each edge's own row.
+        J[:, _READOUT] = -J[:, _DELTA] * self.data.row_share[bi] + self.data.skew[bi, ei]
         for j, raw_p in enumerate(self._shape_steps(x, poses, R_body, uv)):
             J[:, _SHAPE.start + j] = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
         # Bias: analytic.
         J[:, _BIAS.start] = ((raw - raw[:, opposite]) / 2.0)[bi, ei]
-        J[:, _BIAS.start + 1 :] = _OFFSET_FROM_BIAS[ei]
+        J[:, _BIAS.start + 1 : _BIAS.stop] = _OFFSET_FROM_BIAS[ei]
         self._cache["J"] = np.vstack([J / self.data_scale[:, None], self.prior_jacobian])
 
     def residuals(self, x: FloatArray) -> FloatArray:
@@ -561,7 +616,7 @@ def _assemble(
     R, C = _pose_from_params(x[_POSE], model.R0, model.C0)
     model_boxes = model._cache["model"]
     residuals = np.full(data.boxes.shape, np.nan)
-    residuals[data.used] = (model_boxes - data.boxes)[data.used]
+    residuals[data.used] = (model_boxes - data.corrected(float(x[_READOUT])))[data.used]
     row_scale = np.full(data.boxes.shape, np.nan)
     row_scale[model.box_index, model.edge_index] = model.data_scale
     stds = np.sqrt(np.maximum(np.diag(covariance_full), 0.0))
@@ -593,6 +648,8 @@ def _assemble(
         row_scale_px=row_scale,
         edge_fraction=model.edge_fraction.copy(),
         rho=model.rho,
+        readout_s=float(x[_READOUT]),
+        readout_std_s=float(stds[_READOUT]),
     )
 
 
@@ -625,10 +682,16 @@ def largest_stds(covariance: FloatArray) -> tuple[float, float]:
     return position, math.degrees(rotation)
 
 
-def _quick(params: ModelParams) -> ModelParams:
+def _quick(params: ModelParams, fit: ModelFit) -> ModelParams:
     """The settings of the refits inside the checks (left-out traversals, halves): half the evaluations,
-    started from the full fit."""
-    return replace(params, max_evaluations=max(8, params.max_evaluations // 2))
+    started from the full fit, with its readout time held: a property of the camera, which a single
+    drive-past, whose boxes keep to a band of rows, barely fixes apart from the clock."""
+    return replace(
+        params,
+        max_evaluations=max(8, params.max_evaluations // 2),
+        readout_s=fit.readout_s,
+        readout_std_s=_HELD,
+    )
 
 
 def _pose_difference(R_a: Rotation, C_a: Vec3, R_b: Rotation, C_b: Vec3) -> FloatArray:
@@ -743,12 +806,18 @@ def unbiased_boxes(boxes: Boxes, bias: FloatArray) -> Boxes:
 
 
 def model_footprints(
-    fit: ModelFit, tracks: Sequence[MatchedTrack], trajectory: Trajectory, vehicle: VehicleProfile
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
 ) -> FloatArray:
-    """The fitted template's lowest rectangle at every box (N, 4, 3), local frame, at its time shift."""
+    """The fitted template's lowest rectangle at every box (N, 4, 3), local frame, at its time shift and
+    readout."""
     sampler = PoseSampler.of(trajectory)
     stamps = np.concatenate([t.stamps for t in tracks])
-    poses = sampler.at(sampler.seconds(stamps) - fit.time_shift_s)
+    shares = _row_shares(np.concatenate([t.boxes for t in tracks]), camera)
+    poses = sampler.at(sampler.seconds(stamps) - fit.time_shift_s + fit.readout_s * shares)
     return body_points_to_world(poses, fit.footprint_body_frame(vehicle), vehicle)
 
 
@@ -828,7 +897,7 @@ def leave_one_out(
     if len(clusters) < 2:
         return LeftOut(fit, clusters, ())
     rests = [[t for i, c in enumerate(clusters) if i != index for t in c] for index in range(len(clusters))]
-    fits = tuple(map_fn(_SubsetFit(fit, trajectory, camera, vehicle, _quick(params)), rests))
+    fits = tuple(map_fn(_SubsetFit(fit, trajectory, camera, vehicle, _quick(params, fit)), rests))
     return LeftOut(fit, clusters, fits)
 
 
@@ -933,7 +1002,7 @@ def _halves_disagree(
         return "", None
     middle = len(clusters) // 2
     parts = [[t for c in part for t in c] for part in (clusters[:middle], clusters[middle:])]
-    halves = list(map_fn(_SubsetFit(fit, trajectory, camera, vehicle, _quick(params)), parts))
+    halves = list(map_fn(_SubsetFit(fit, trajectory, camera, vehicle, _quick(params, fit)), parts))
     early, late = halves
     if isinstance(early, str) or isinstance(late, str):
         return "", None  # a half too weak to fit on its own says nothing about a move
@@ -1064,7 +1133,7 @@ def predicted_residuals(
     model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
     raw, _, _, _ = model.raw(x)
     data = model.data
-    return np.where(data.used, np.abs(model.biased(raw, fit.bias) - data.boxes), np.nan)
+    return np.where(data.used, np.abs(model.biased(raw, fit.bias) - data.corrected(fit.readout_s)), np.nan)
 
 
 def _model_of(
@@ -1080,10 +1149,11 @@ def _model_of(
     sampler = PoseSampler.of(trajectory)
     data = _data_of(tracks, sampler, camera, params)
     x = np.zeros(N_PARAMS)
-    x[_DELTA], x[_SHAPE], x[_BIAS] = fit.time_shift_s, fit.shape, fit.bias
+    x[_DELTA], x[_SHAPE], x[_BIAS], x[_READOUT] = fit.time_shift_s, fit.shape, fit.bias, fit.readout_s
     model = _Model(
         data, sampler, fit.R_cam_from_local, fit.camera_centre, camera, vehicle, params, x, params.prior_std()
     )
+    model.set_skew(x)
     return model, x
 
 
@@ -1096,10 +1166,20 @@ def _data_of(
     return _Data(
         boxes=boxes,
         t_s=sampler.seconds(stamps),
+        row_share=_row_shares(boxes, camera),
+        skew=np.zeros_like(boxes),  # set from a model (_Model.set_skew)
         track_ids=np.concatenate([np.full(len(t.boxes), t.track_id, dtype=np.int64) for t in tracks]),
         stamps=stamps,
         used=~_clipped_edges(boxes, camera, params.border_margin_px),
     )
+
+
+def _row_shares(boxes: Boxes, camera: CameraModel) -> FloatArray:
+    """Each box centre's row as a share of the image height from its middle (-1/2 top, 1/2 bottom): when a
+    rolling shutter's readout reached it, relative to the middle row (whose time the time shift is: it is
+    the one least tied to the readout, as the boxes' rows centre on it more or less)."""
+    share = np.clip(0.5 * (boxes[:, 1] + boxes[:, 3]) / camera.height, 0.0, 1.0) - 0.5
+    return np.asarray(share, dtype=np.float64)
 
 
 def model_box_error(
@@ -1176,7 +1256,7 @@ def _displaced_point_changes(
     points = template_points(x[_SHAPE], vehicle)
     k = len(points)
     R, C = _pose_from_params(x[_POSE], model.R0, model.C0)
-    poses = model.sampler.at(model.data.t_s - x[_DELTA])
+    poses = model.poses_at(x)
     R_body = rotation_from_ypr(poses[:, 3], poses[:, 4], poses[:, 5])
     displaced = (points[:, None, :] + std_m * np.eye(3)[None, :, :]).reshape(-1, 3)  # point-major (3k, 3)
     world = rotated_body_points(R_body, poses, np.vstack([points, displaced]), vehicle)

@@ -151,7 +151,8 @@ class CalibrationResult(StrictModel):
         default=None,
         description=(
             "estimated vehicle (V2X) clock minus camera stamp of the frame showing the same instant, ns: the "
-            "clock offset plus the detector's latency; what the pipeline subtracts from pose stamps"
+            "clock offset plus the detector's latency (a rolling shutter's: of the image's middle row); what "
+            "the pipeline subtracts from pose stamps"
         ),
     )
     time_offset_std_ns: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
