@@ -59,6 +59,17 @@ C_TRUE = np.array([-2.0, -1.0, 9.0])
 SHAPE_TRUE = np.array([0.3, 0.8, 0.12, 3.4, 1.2, 0.25])  # body bottom, wheels in 0.8 / 0.12 m, roof 1.2-3.4 m
 BIAS_TRUE = np.array([-0.05, 1.0, 1.5, -3.0, 4.0])  # 5 % tight, shifted, grown (px)
 SHIFT_TRUE_S = 0.12
+# Priors so wide they do not pull (the default ones pull a few mm towards the cuboid on exact data).
+FLAT = ModelParams(
+    max_evaluations=300,
+    time_shift_std_s=100.0,
+    shape_std=(100.0,) * 6,
+    scale_std=100.0,
+    shift_std_px=1e4,
+    fit_shift=True,
+    grow_std_px=1e4,
+    readout_std_s=1.0,
+)
 
 
 def _drive(
@@ -138,17 +149,7 @@ def _start(seed: int = 3):
 def test_exact_boxes_give_back_pose_shift_shape_and_bias():
     trajectory, tracks = _scene()
     R0, t0 = _start()
-    # Priors so wide they do not pull (the default ones pull a few mm towards the cuboid on exact data).
-    flat = ModelParams(
-        max_evaluations=200,
-        time_shift_std_s=100.0,
-        shape_std=(100.0,) * 6,
-        scale_std=100.0,
-        shift_std_px=1e4,
-        fit_shift=True,
-        grow_std_px=1e4,
-    )
-    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, flat)
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, FLAT)
     assert np.linalg.norm(fit.camera_centre - C_TRUE) < 1e-3
     assert math.degrees(rotation_angle_rad(fit.R_cam_from_local, R_TRUE)) < 1e-3
     assert abs(fit.time_shift_s - SHIFT_TRUE_S) < 1e-4
@@ -677,18 +678,6 @@ def _rolling_scene(readout_s: float) -> tuple[Trajectory, list[MatchedTrack]]:
         inside = (boxes[:, 0] > 2) & (boxes[:, 2] < 1918) & (boxes[:, 1] > 2) & (boxes[:, 3] < 1078)
         rolled.append(MatchedTrack(track.track_id, track.stamps[inside], boxes[inside], track.poses[inside]))
     return trajectory, rolled
-
-
-FLAT = ModelParams(
-    max_evaluations=300,
-    time_shift_std_s=100.0,
-    shape_std=(100.0,) * 6,
-    scale_std=100.0,
-    shift_std_px=1e4,
-    fit_shift=True,
-    grow_std_px=1e4,
-    readout_std_s=1.0,
-)
 
 
 def test_boxes_exposed_row_by_row_give_back_the_readout_the_clock_and_the_pose():
