@@ -427,7 +427,10 @@ class _Model:
         """The data's skew (_Data.skew) from the model at x: each edge's rate, and the row of the point that
         forms it. Noise-free, where the boxes' differences along a track would put their noise into the
         readout's regressor; held for the fit (rates and rows barely change with the small moves of the
-        pose a fit makes from its start)."""
+        pose a fit makes from its start). Nothing to do where the readout is held at 0: the boxes are then
+        their own correction and the readout's column is pinned by its prior."""
+        if self.params.readout_std_s <= _HELD and x[_READOUT] == 0.0:
+            return
         step = self.params.shape_step
         later = x.copy()
         later[_DELTA] -= step  # the trajectory `step` later
