@@ -33,6 +33,7 @@ from pipeline.vehicle_model import (
     largest_stds,
     leave_one_out,
     model_box_error,
+    model_box_errors,
     model_footprints,
     unbiased_boxes,
 )
@@ -327,11 +328,7 @@ def _recognised(
     members' own)), never one seen at the same time as a track already taken (another vehicle)."""
     limit = max(0.10, 2.5 * error)
     taken = {m.track_id for m in members}
-    scored: list[tuple[float, MatchedTrack]] = []
-    for track in scene.tracks.values():
-        if track.track_id in taken or len(track.boxes) < 5:
-            continue
-        misfit = model_box_error(fit, [track], scene.trajectory, scene.camera, scene.vehicle, model)
-        if misfit <= limit:
-            scored.append((misfit, track))
+    candidates = [t for t in scene.tracks.values() if t.track_id not in taken and len(t.boxes) >= 5]
+    misfits = model_box_errors(fit, candidates, scene.trajectory, scene.camera, scene.vehicle, model)
+    scored = [(float(e), t) for e, t in zip(misfits, candidates, strict=True) if e <= limit]
     return apart_in_time(scored, track_spans(members))

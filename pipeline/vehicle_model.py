@@ -1198,6 +1198,35 @@ def model_box_error(
     right pose reproduces its boxes to the detector's noise; another vehicle's track does not."""
     residuals = predicted_residuals(fit, tracks, trajectory, camera, vehicle, params)
     boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
+    return _median_relative_misfit(residuals, boxes)
+
+
+def model_box_errors(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> FloatArray:
+    """`model_box_error` of each track on its own (K,), from one model of all their boxes: every box's
+    model edges depend on that box alone, so this is K calls' result for the cost of one (it scores every
+    track of a recording against a fit)."""
+    if not tracks:
+        return np.zeros(0)
+    residuals = predicted_residuals(fit, tracks, trajectory, camera, vehicle, params)
+    ends = np.cumsum([len(t.boxes) for t in tracks])[:-1]
+    return np.array(
+        [
+            _median_relative_misfit(part, np.asarray(t.boxes, dtype=np.float64))
+            for part, t in zip(np.split(residuals, ends), tracks, strict=True)
+        ]
+    )
+
+
+def _median_relative_misfit(residuals: FloatArray, boxes: Boxes) -> float:
+    """Median over boxes of the largest unclipped edge residual (N, 4) px over the box height; inf
+    without a usable box."""
     rows = np.isfinite(residuals).any(axis=1)
     if not rows.any():
         return math.inf

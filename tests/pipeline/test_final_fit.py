@@ -18,7 +18,13 @@ from pipeline.refinement import RefinementParams
 from pipeline.selection import Scene, SelectionParams, refine_group
 from pipeline.validation import count_traversals
 from pipeline.vehicle import body_corners
-from pipeline.vehicle_model import ModelParams, dominating_covariance, largest_stds
+from pipeline.vehicle_model import (
+    ModelParams,
+    dominating_covariance,
+    largest_stds,
+    model_box_error,
+    model_box_errors,
+)
 
 START_NS = 1_700_000_000_000_000_000
 TAIL = 15  # rows (1.5 s) of each drive kept beyond the view: the vehicle is out of view 3 s between them
@@ -73,6 +79,26 @@ def test_drive_pasts_count_only_as_far_as_the_leave_one_out_check_tells_them_apa
     # against each other, so they count once (and validation refuses); a minute apart they count twice.
     assert final.traversals == expected
     assert np.linalg.norm(final.fit.camera_centre - np.array([0.0, 0.0, 10.0])) < 1e-3
+
+
+def test_each_tracks_box_error_from_one_model_is_its_own() -> None:
+    """model_box_errors scores each track as model_box_error does on it alone: the vehicle's own tracks
+    near 0, another vehicle's (the boxes 150 px aside) far off, a track of clipped boxes only inf."""
+    scene, tracks = _scene(60.0)
+    model = ModelParams()
+    pose = true_pose()
+    candidate = refine_group(tracks, [hypothesis(0, pose), hypothesis(1, pose)], scene)
+    fit = joint_fit(candidate, scene, model, 0.01).fit
+    shifted = tracks[0].boxes + np.array([150.0, 0.0, 150.0, 0.0])
+    aside = MatchedTrack(7, tracks[0].stamps, shifted, tracks[0].poses)
+    clipped_boxes = np.tile([0.0, 0.0, CAMERA.width, CAMERA.height], (len(tracks[1].boxes), 1))
+    clipped = MatchedTrack(8, tracks[1].stamps, clipped_boxes, tracks[1].poses)
+    scored = [*tracks, aside, clipped]
+    errors = model_box_errors(fit, scored, scene.trajectory, CAMERA, VEHICLE, model)
+    alone = [model_box_error(fit, [t], scene.trajectory, CAMERA, VEHICLE, model) for t in scored]
+    np.testing.assert_allclose(errors, alone, rtol=1e-12)
+    assert errors[0] < 0.01 and errors[1] < 0.01 and errors[2] > 0.5 and errors[3] == math.inf
+    assert model_box_errors(fit, [], scene.trajectory, CAMERA, VEHICLE, model).shape == (0,)
 
 
 def _spd(draw_matrix: np.ndarray, scale: np.ndarray) -> np.ndarray:
