@@ -1209,19 +1209,25 @@ def model_box_errors(
     vehicle: VehicleProfile,
     params: ModelParams,
 ) -> FloatArray:
-    """`model_box_error` of each track on its own (K,), from one model of all their boxes: every box's
-    model edges depend on that box alone, so this is K calls' result for the cost of one (it scores every
-    track of a recording against a fit)."""
-    if not tracks:
-        return np.zeros(0)
-    residuals = predicted_residuals(fit, tracks, trajectory, camera, vehicle, params)
-    ends = np.cumsum([len(t.boxes) for t in tracks])[:-1]
-    return np.array(
-        [
-            _median_relative_misfit(part, np.asarray(t.boxes, dtype=np.float64))
-            for part, t in zip(np.split(residuals, ends), tracks, strict=True)
-        ]
-    )
+    """`model_box_error` of each track on its own (K,), from one model per batch of up to
+    `_SCORED_BOXES` boxes: every box's model edges depend on that box alone, so this is K calls' result for
+    the cost of a few (it scores every track of a recording against a fit) and bounded memory."""
+    errors = np.zeros(len(tracks))
+    start, boxes = 0, 0
+    for end, track in enumerate(tracks, start=1):
+        boxes += len(track.boxes)
+        if boxes < _SCORED_BOXES and end < len(tracks):
+            continue
+        batch = tracks[start:end]
+        residuals = predicted_residuals(fit, batch, trajectory, camera, vehicle, params)
+        ends = np.cumsum([len(t.boxes) for t in batch])[:-1]
+        for index, (part, t) in enumerate(zip(np.split(residuals, ends), batch, strict=True)):
+            errors[start + index] = _median_relative_misfit(part, np.asarray(t.boxes, dtype=np.float64))
+        start, boxes = end, 0
+    return errors
+
+
+_SCORED_BOXES = 4096  # boxes per model in model_box_errors: ~10 MB of model arrays, most of the speed
 
 
 def _median_relative_misfit(residuals: FloatArray, boxes: Boxes) -> float:

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from test_selection import CAMERA, FRAME_NS, PATHS, VEHICLE, hypothesis, poses_along, true_pose
 
+from pipeline import vehicle_model
 from pipeline.association import MatchedTrack, Trajectory
 from pipeline.camera import project_points
 from pipeline.final_fit import final_fit, joint_fit, std_parts
@@ -81,9 +82,14 @@ def test_drive_pasts_count_only_as_far_as_the_leave_one_out_check_tells_them_apa
     assert np.linalg.norm(final.fit.camera_centre - np.array([0.0, 0.0, 10.0])) < 1e-3
 
 
-def test_each_tracks_box_error_from_one_model_is_its_own() -> None:
-    """model_box_errors scores each track as model_box_error does on it alone: the vehicle's own tracks
-    near 0, another vehicle's (the boxes 150 px aside) far off, a track of clipped boxes only inf."""
+@pytest.mark.parametrize("batch_boxes", [1, 150, 4096])
+def test_each_tracks_box_error_from_one_model_is_its_own(
+    batch_boxes: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """model_box_errors scores each track as model_box_error does on it alone, however its batches split
+    the tracks: the vehicle's own tracks near 0, another vehicle's (the boxes 150 px aside) far off, a track
+    of clipped boxes only inf."""
+    monkeypatch.setattr(vehicle_model, "_SCORED_BOXES", batch_boxes)
     scene, tracks = _scene(60.0)
     model = ModelParams()
     pose = true_pose()
