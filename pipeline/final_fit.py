@@ -19,12 +19,15 @@ from pipeline.selection import Candidate, Scene, fits_as_well
 from pipeline.stage import StageReport
 from pipeline.validation import count_traversals
 from pipeline.vehicle_model import (
+    HELD_STD,
+    TIME_SHIFT,
     ModelFit,
     ModelParams,
     TraversalCheck,
     check_traversals,
     combined_covariance,
     consider_covariance,
+    consider_moves,
     cuboid_params,
     cuboid_rejection,
     fit_trimmed,
@@ -55,14 +58,17 @@ class FinalFit:
     box_error_rel: float  # median over the members' boxes of max |model edge - detected edge| / box height
     tracks: tuple[MatchedTrack, ...]
     traversals: int  # counted from the data (validation.count_traversals) over the final tracks
-    # The clock's std from the fit with the shift free: a shift held at its prior (indistinguishable from
-    # it) is known to this, not to the 1 ns the held fit carries.
+    # The clock's std, in quadrature: the fit's with the shift free (a shift held at its prior,
+    # indistinguishable from it, is known to this, not to the 1 ns the held fit carries), the left-out
+    # fits' scatter, and what the body the template cannot describe and a readout held at 0 do to it.
     time_offset_std_s: float
     # The part of `covariance` from the body shape the template cannot describe (consider parameters,
     # vehicle_model.consider_covariance, with the detector's shift); zero where the boxes are the cuboid's.
     shape_covariance: FloatArray
     body: str = "the template"  # which body model the pose comes from, and why
     gnss_offset_std_m: float = 0.0  # the GNSS offset common to every pose, in the fit's covariance
+    # Where time_offset_std_s comes from: (source, std s) pairs that add up in quadrature.
+    time_offset_parts: tuple[tuple[str, float], ...] = ()
 
     def std_parts(self) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
         """Where the largest position std (m) and rotation std (deg) come from (`std_parts`)."""
@@ -87,7 +93,8 @@ class FinalFit:
             0,
             (
                 f"body {self.body}; time offset {self.time_offset_ns(prior_ns) / 1e6:.1f} ms "
-                f"+- {self.time_offset_std_s * 1e3:.1f} ms, readout {self.fit.readout_s * 1e3:.1f} ms "
+                f"+- {self.time_offset_std_s * 1e3:.1f} ms{self._time_parts()}, "
+                f"readout {self.fit.readout_s * 1e3:.1f} ms "
                 f"+- {self.fit.readout_std_s * 1e3:.1f} ms, box rms {self.fit.box_rmse_px:.2f} px, "
                 f"box error {100 * self.box_error_rel:.1f} %, fit std {self.fit.position_std_m:.3f} m / "
                 f"{self.fit.rotation_std_deg:.3f} deg, "
@@ -96,6 +103,10 @@ class FinalFit:
                 f"template cannot describe adds {body_m:.3f} m / {body_deg:.3f} deg",
             ),
         )
+
+    def _time_parts(self) -> str:
+        shown = [f"{name} {std * 1e3:.1f}" for name, std in self.time_offset_parts if std > 0.0]
+        return f" (in quadrature: {', '.join(shown)} ms)" if len(shown) > 1 else ""
 
 
 def std_parts(
@@ -141,6 +152,9 @@ class JointFit:
     members: list[MatchedTrack]
     model_params: ModelParams
     time_offset_std_s: float
+    # What the data say about the readout, held or not (the finding fit's std): a readout held at 0 is
+    # known only to this, which the final fit considers for the clock.
+    readout_std_s: float
     rejection: float  # cuboid_rejection of the fit
     body_shown: bool  # the boxes reject the cuboid body: the template is the model, this fit's clock final
 
@@ -190,6 +204,7 @@ def joint_fit(chosen: Candidate, scene: Scene, model: ModelParams, min_time_shif
     # gave -6 ms +- 0.6 ms and twice the scatter between traversals); it is then held at the prior.
     shift_limit = max(3.0 * fit.time_shift_std_s, min_time_shift_s)
     time_offset_std_s = fit.time_shift_std_s  # what the data say about the clock, held or not
+    readout_std_s = fit.readout_std_s
     if abs(fit.time_shift_s) <= shift_limit:
         model_params = replace(model_params, time_shift_std_s=1e-9)
     # The readout likewise: where the data do not show one, the camera is taken to read every row at once.
@@ -209,6 +224,7 @@ def joint_fit(chosen: Candidate, scene: Scene, model: ModelParams, min_time_shif
         members,
         model_params,
         time_offset_std_s,
+        readout_std_s,
         rejection,
         rejection > model.cuboid_rejection_chi2,
     )
@@ -293,6 +309,35 @@ def final_fit(
         if templated
         else np.zeros((6, 6))
     )
+    # The clock's std. The left-out fits' scatter (where the model fitted the clock) and what the consider
+    # parameters do to it, with the clock free (a held clock is known only to the data's std): the body
+    # the template cannot describe moves the vehicle along its track, which a shift of the clock mimics
+    # (0.1 m at 10 m/s is 10 ms; the fit's own std alone missed the realistic world's clock by more than 3
+    # of it in 46 of 229 runs), and a readout held at 0 shifts the boxes' rows' time.
+    clock_params = model_params
+    if model_params.time_shift_std_s <= HELD_STD:
+        clock_params = replace(model_params, time_shift_std_s=model.time_shift_std_s)
+    held_readout_std_s = joint.readout_std_s if model_params.readout_std_s <= HELD_STD else 0.0
+    body_moves = consider_moves(
+        fit,
+        used,
+        trajectory,
+        camera,
+        vehicle,
+        clock_params,
+        model.template_point_std_m if templated else 0.0,
+        model.shift_std_px if templated else 0.0,
+        held_readout_std_s,
+    )[:, TIME_SHIFT]
+    readout_part = 0.0
+    if held_readout_std_s > 0.0 and len(body_moves):
+        readout_part, body_moves = abs(float(body_moves[-1])), body_moves[:-1]
+    time_parts = (
+        ("fit", time_offset_std_s),
+        ("drive-pasts", math.sqrt(check.time_shift_var_s2)),
+        ("body", math.sqrt(float(np.sum(body_moves**2)))),
+        ("held readout", readout_part),
+    )
     return FinalFit(
         fit=fit,
         check=check,
@@ -314,7 +359,8 @@ def final_fit(
             len(left_out.clusters),
         ),
         tracks=tuple(used),
-        time_offset_std_s=time_offset_std_s,
+        time_offset_std_s=math.sqrt(sum(std**2 for _, std in time_parts)),
+        time_offset_parts=time_parts,
         shape_covariance=shape_covariance,
         body=body,
         gnss_offset_std_m=model_params.pose_bias_std_m,

@@ -61,7 +61,9 @@ from schemas.common import VehicleProfile
 
 _POSE, _DELTA, _SHAPE, _BIAS, _READOUT = slice(0, 6), 6, slice(7, 13), slice(13, 18), 18
 N_PARAMS = 19
+TIME_SHIFT = _DELTA  # the time shift's column in a parameter vector (consider_moves)
 _HELD = 1e-6  # prior std of a parameter held at its start
+HELD_STD = _HELD  # a prior std at or below this holds its parameter
 # Tracks more than this apart in time (s) are separate drive-pasts for the leave-one-out check.
 TRAVERSAL_GAP_S = 5.0
 SHAPE_NAMES = (
@@ -835,13 +837,15 @@ class TraversalCheck:
     traversal is left out; disagreeing: reason text, else '', when some left-out traversal cannot be fitted,
     or its boxes are predicted by the others beyond their uncertainty and the noise (mean squared Mahalanobis
     residual above `holdout_chi2_per_residual`) or pull their pose beyond `holdout_pull_chi2`, and leaving it
-    out moves the pose materially (see check_traversals)."""
+    out moves the pose materially (see check_traversals). time_shift_var_s2: the jackknife variance (s^2) of
+    the time shift over the left-out fits (0 where the model held it, or with fewer than two of them)."""
 
     traversals: int
     covariance: FloatArray | None
     shift_m: float
     angle_deg: float
     disagreeing: str
+    time_shift_var_s2: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -918,6 +922,7 @@ def check_traversals(
     if len(clusters) < 2:
         return TraversalCheck(len(clusters), None, 0.0, 0.0, "")
     deltas: list[FloatArray] = []
+    time_shifts: list[float] = []
     worst_shift = worst_angle = 0.0
     problems: list[str] = []
     for index, loo in enumerate(left_out.fits):
@@ -928,6 +933,7 @@ def check_traversals(
             fit.R_cam_from_local, fit.camera_centre, loo.R_cam_from_local, loo.camera_centre
         )
         deltas.append(delta)
+        time_shifts.append(loo.time_shift_s)
         shift, angle = _move_size(delta)
         worst_shift, worst_angle = max(worst_shift, shift), max(worst_angle, angle)
         # Cross-validation: the left-out traversal's boxes as predicted by the others. Judged on the boxes,
@@ -966,10 +972,12 @@ def check_traversals(
     # With two traversals each left-out fit is a single drive-past, often weak, so this overstates the
     # joint fit's uncertainty: accepted. Without it a scene of two drive-pasts that moved the pose 0.6 m /
     # 2.5 deg when either was left out reported 0.05 m / 0.013 deg and was published 0.6 deg off.
+    time_shift_var = 0.0
     if k >= 2:
         stacked = np.array(deltas)
         centred = stacked - stacked.mean(axis=0)
         covariance = (k - 1) / k * centred.T @ centred
+        time_shift_var = (k - 1) / k * float(np.sum((np.array(time_shifts) - np.mean(time_shifts)) ** 2))
     # Leaving one traversal out treats drive-pasts as independent; errors that drift over minutes (GNSS
     # wander, a warming mount) are shared by neighbouring ones and hide from it. The two halves in time
     # show them: their difference d, of two independent estimates whose mean the joint fit is, is d d^T / 4
@@ -981,7 +989,7 @@ def check_traversals(
     reason = ""
     if problems:
         reason = f"traversals disagree by {worst_shift:.2f} m / {worst_angle:.2f} deg: " + "; ".join(problems)
-    return TraversalCheck(len(clusters), covariance, worst_shift, worst_angle, reason)
+    return TraversalCheck(len(clusters), covariance, worst_shift, worst_angle, reason, time_shift_var)
 
 
 def _halves_disagree(
@@ -1261,11 +1269,31 @@ def consider_covariance(
     fitted to the truth's own tracks from the true pose the template still landed 0.15-0.5 m / 0.1-0.45 deg
     off with a sandwich std of 0.07-0.1 m / 0.09-0.12 deg), and every box shifted by `shift_std_px` in x,
     then in y (ModelParams.fit_shift: held, never fitted, by default). Zero when both stds are 0."""
-    if point_std_m <= 0.0 and shift_std_px <= 0.0:
-        return np.zeros((6, 6))
+    moves = consider_moves(fit, tracks, trajectory, camera, vehicle, params, point_std_m, shift_std_px)
+    return np.asarray(moves[:, _POSE].T @ moves[:, _POSE], dtype=np.float64)
+
+
+def consider_moves(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+    point_std_m: float,
+    shift_std_px: float,
+    readout_std_s: float = 0.0,
+) -> FloatArray:
+    """The fit's response (K, N_PARAMS) to each consider parameter moved by its std (consider_covariance),
+    every parameter's move, not only the pose's: the time shift's column is what the body does to the
+    clock. `readout_std_s` adds one more: the readout moved by that std, for a fit that held it (a readout
+    the data could not tell from 0 is known only to their std). (0, N_PARAMS) when there is none."""
+    empty = np.zeros((0, N_PARAMS))
+    if point_std_m <= 0.0 and shift_std_px <= 0.0 and readout_std_s <= 0.0:
+        return empty
     model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
     if model.data_rows < 2 * N_PARAMS:
-        return np.zeros((6, 6))
+        return empty
     model.weigh(x)  # the rows weighted as the fit's second pass weighted them
     r_all, J_all = model.residuals(x), model.jacobian(x)
     m = model.data_rows
@@ -1275,10 +1303,10 @@ def consider_covariance(
     changes = [_OFFSET_FROM_BIAS[model.edge_index, :2].T * shift_std_px] if shift_std_px > 0.0 else []
     if point_std_m > 0.0:
         changes.append(_displaced_point_changes(model, x, vehicle, camera, params, point_std_m))
-    rows = np.vstack(changes) / model.data_scale  # (K, m) in row units
-    moves = -(rows * weights) @ Js @ A_inv / scale  # (K, N_PARAMS): the fit's response
-    pose_moves = moves[:, :6]
-    return np.asarray(pose_moves.T @ pose_moves, dtype=np.float64)
+    rows = np.vstack(changes) / model.data_scale if changes else np.zeros((0, m))  # (K, m) in row units
+    if readout_std_s > 0.0:
+        rows = np.vstack([rows, readout_std_s * J_all[:m, _READOUT]])  # the Jacobian is in row units
+    return np.asarray(-(rows * weights) @ Js @ A_inv / scale, dtype=np.float64)
 
 
 def _displaced_point_changes(

@@ -82,6 +82,23 @@ def test_drive_pasts_count_only_as_far_as_the_leave_one_out_check_tells_them_apa
     assert np.linalg.norm(final.fit.camera_centre - np.array([0.0, 0.0, 10.0])) < 1e-3
 
 
+def test_the_clocks_std_adds_its_parts_in_quadrature_and_the_report_names_them() -> None:
+    scene, tracks = _scene(60.0)
+    pose = true_pose()
+    candidate = refine_group(tracks, [hypothesis(0, pose), hypothesis(1, pose)], scene)
+    model = ModelParams()
+    joint = joint_fit(candidate, scene, model, 0.01)
+    final = final_fit(joint, scene, model, 0.9)
+    names = [name for name, _ in final.time_offset_parts]
+    assert names == ["fit", "drive-pasts", "body", "held readout"]
+    assert final.time_offset_parts[0][1] == joint.time_offset_std_s  # the data's, held or not
+    total = math.sqrt(sum(std**2 for _, std in final.time_offset_parts))
+    assert final.time_offset_std_s == pytest.approx(total, rel=1e-12)
+    assert final.time_offset_std_s >= joint.time_offset_std_s
+    note = final.report(0).notes[0]
+    assert f"+- {final.time_offset_std_s * 1e3:.1f} ms" in note
+
+
 @pytest.mark.parametrize("batch_boxes", [1, 150, 4096])
 def test_each_tracks_box_error_from_one_model_is_its_own(
     batch_boxes: int, monkeypatch: pytest.MonkeyPatch

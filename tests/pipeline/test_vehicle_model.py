@@ -25,6 +25,7 @@ from pipeline.vehicle_model import (
     _DELTA,
     _SHAPE,
     N_PARAMS,
+    TIME_SHIFT,
     ModelParams,
     PoseSampler,
     _Data,
@@ -35,6 +36,7 @@ from pipeline.vehicle_model import (
     _traversal_clusters,
     check_traversals,
     consider_covariance,
+    consider_moves,
     cuboid_params,
     cuboid_rejection,
     cuboid_shape,
@@ -720,3 +722,83 @@ def test_the_fits_that_leave_a_drive_past_out_keep_the_cameras_readout():
         assert abs(loo.readout_s - fit.readout_s) < 1e-5
     check = check_traversals(left_out, trajectory, CAMERA, VEHICLE, FLAT)
     assert check.disagreeing == ""
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The clock's uncertainty: what the body, a held readout and the drive-pasts' scatter do to the time shift.
+# ---------------------------------------------------------------------------------------------------------
+
+
+def test_a_body_the_template_cannot_describe_moves_the_clock_within_its_considered_std():
+    """The rounded, mirrored body of the consider test moves the vehicle along its track as the template
+    sees it, and the fitted clock follows: within 3 of its std with the time shift's response to the
+    consider parameters added, a response that grows linearly with the points' std."""
+    trajectory, tracks = _body_scene(_rounded_body(SHAPE_TRUE, chamfer_m=0.3, mirror_m=0.15))
+    R0, t0 = _start()
+    params = ModelParams()
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
+    moves = {
+        std: consider_moves(fit, tracks, trajectory, CAMERA, VEHICLE, params, std, 0.0) for std in (0.05, 0.1)
+    }
+    assert moves[0.1].shape == (36, N_PARAMS)
+    # Its pose columns are the consider covariance's.
+    np.testing.assert_allclose(
+        moves[0.1][:, :6].T @ moves[0.1][:, :6],
+        consider_covariance(fit, tracks, trajectory, CAMERA, VEHICLE, params, 0.1, 0.0),
+    )
+    clock_s = {std: float(np.linalg.norm(m[:, TIME_SHIFT])) for std, m in moves.items()}
+    assert clock_s[0.05] > 0.0
+    assert 1.6 < clock_s[0.1] / clock_s[0.05] < 2.4  # linear, to the secant's bend (see above)
+    error_s = abs(fit.time_shift_s - SHIFT_TRUE_S)
+    assert error_s <= 3 * math.hypot(fit.time_shift_std_s, clock_s[0.1]), (error_s, clock_s)
+
+
+def test_a_readout_held_at_zero_moves_the_clock_as_its_considered_std_says():
+    """Boxes exposed row by row (30 ms) fitted with the readout held at 0: the clock lands off by the
+    readout times the boxes' mean row share; the time shift's response to the readout moved by the true
+    readout, as a consider parameter, is that move, to first order."""
+    trajectory, tracks = _rolling_scene(READOUT_TRUE_S)
+    R0, t0 = _start()
+    held_params = replace(FLAT, readout_std_s=1e-9)
+    held = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, held_params)
+    error_s = held.time_shift_s - SHIFT_TRUE_S
+    assert abs(error_s) > held.time_shift_std_s  # measured: 6.1 ms against 2.2 ms
+    moves = consider_moves(
+        fit=held,
+        tracks=tracks,
+        trajectory=trajectory,
+        camera=CAMERA,
+        vehicle=VEHICLE,
+        params=held_params,
+        point_std_m=0.0,
+        shift_std_px=0.0,
+        readout_std_s=READOUT_TRUE_S,
+    )
+    assert moves.shape == (1, N_PARAMS)
+    # The fit absorbed a readout of +30 ms as a clock move of the same sign and size as the response.
+    assert 0.5 < -moves[0, TIME_SHIFT] / error_s < 2.0, (moves[0, TIME_SHIFT], error_s)
+    assert consider_moves(held, tracks, trajectory, CAMERA, VEHICLE, held_params, 0.0, 0.0).shape == (
+        0,
+        N_PARAMS,
+    )
+
+
+@pytest.mark.parametrize("jump_ms", [0.0, 40.0])
+def test_the_left_out_fits_scatter_of_the_clock_is_the_clocks_jackknife(jump_ms: float):
+    """A camera clock that jumped by 40 ms before the last drive-past: the left-out fits' time shifts
+    scatter (two drive-pasts on different clocks fit no clock well), and the check's jackknife std of the
+    clock says so, far beyond the joint fit's own std; without the jump it stays below that std. The readout
+    is held: free, it trades off against the clock and would blur what this test isolates."""
+    params = replace(FLAT, readout_std_s=1e-9)
+    trajectory, tracks = _scene()
+    last = tracks[-1]
+    tracks[-1] = MatchedTrack(last.track_id, last.stamps + round(jump_ms * 1e6), last.boxes, last.poses)
+    R0, t0 = _start()
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
+    left_out = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+    check = check_traversals(left_out, trajectory, CAMERA, VEHICLE, params)
+    jackknife_s = math.sqrt(check.time_shift_var_s2)
+    if jump_ms:
+        assert jackknife_s > max(0.25 * jump_ms * 1e-3, 3 * fit.time_shift_std_s), (jackknife_s, fit)
+    else:
+        assert jackknife_s < fit.time_shift_std_s, (jackknife_s, fit.time_shift_std_s)

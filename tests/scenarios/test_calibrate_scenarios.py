@@ -215,7 +215,7 @@ def test_coarse_hypotheses_are_regrouped_after_refinement() -> None:
 def _readout_ms(outcome: CalibrationOutcome) -> float:
     """The readout the final fit reports in its stage note ("readout X ms +- Y ms")."""
     notes = " ".join(n for s in outcome.stages if s.stage == "final fit" for n in s.notes)
-    match = re.search(r"readout (-?[0-9.]+) ms", notes)
+    match = re.search(r"readout (-?[0-9.]+) ms \+-", notes)
     assert match is not None, notes
     return float(match.group(1))
 
