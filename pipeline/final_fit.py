@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -20,13 +20,13 @@ from pipeline.stage import StageReport
 from pipeline.validation import count_traversals
 from pipeline.vehicle_model import (
     HELD_STD,
+    POSE_COLUMNS,
     TIME_SHIFT,
     ModelFit,
     ModelParams,
     TraversalCheck,
     check_traversals,
     combined_covariance,
-    consider_covariance,
     consider_moves,
     cuboid_params,
     cuboid_rejection,
@@ -65,6 +65,9 @@ class FinalFit:
     # The part of `covariance` from the body shape the template cannot describe (consider parameters,
     # vehicle_model.consider_covariance, with the detector's shift); zero where the boxes are the cuboid's.
     shape_covariance: FloatArray
+    # The part of `covariance` from a rolling-shutter readout held at 0 (known only to the finding fit's std
+    # of it); zero where the model fitted it.
+    readout_covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     body: str = "the template"  # which body model the pose comes from, and why
     gnss_offset_std_m: float = 0.0  # the GNSS offset common to every pose, in the fit's covariance
     # Where time_offset_std_s comes from: (source, std s) pairs that add up in quadrature.
@@ -72,7 +75,13 @@ class FinalFit:
 
     def std_parts(self) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
         """Where the largest position std (m) and rotation std (deg) come from (`std_parts`)."""
-        return std_parts(self.covariance, self.fit.covariance, self.shape_covariance, self.gnss_offset_std_m)
+        return std_parts(
+            self.covariance,
+            self.fit.covariance,
+            self.shape_covariance,
+            self.gnss_offset_std_m,
+            self.readout_covariance,
+        )
 
     @property
     def position_std_m(self) -> float:
@@ -110,16 +119,21 @@ class FinalFit:
 
 
 def std_parts(
-    covariance: FloatArray, fit_covariance: FloatArray, shape_covariance: FloatArray, gnss_std_m: float
+    covariance: FloatArray,
+    fit_covariance: FloatArray,
+    shape_covariance: FloatArray,
+    gnss_std_m: float,
+    readout_covariance: FloatArray | None = None,
 ) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
     """Where the largest position std (m) and rotation std (deg) of a final covariance (6, 6) [w, C] come
     from, as (source, std) pairs that add up in quadrature along that std's direction
     (validation.STD_SOURCES): the fit (noise and geometry: `fit_covariance` without the GNSS offset
     `gnss_std_m` it carries on its position block), that GNSS offset, the drive-pasts' scatter (what the
     traversal check raised the fit's covariance by: `covariance - shape_covariance - fit_covariance`) and
-    the body shape the template cannot describe (`shape_covariance`). Sources of no variance (below 1e-9 of
-    the total: rounding) are left out."""
-    combined = covariance - shape_covariance  # combined_covariance: at least the fit's in every direction
+    the body shape the template cannot describe (`shape_covariance`), and a readout held at 0
+    (`readout_covariance`). Sources of no variance (below 1e-9 of the total: rounding) are left out."""
+    readout = np.zeros((6, 6)) if readout_covariance is None else readout_covariance
+    combined = covariance - shape_covariance - readout  # combined_covariance: at least the fit's everywhere
     found: list[tuple[tuple[str, float], ...]] = []
     for block, gnss, unit in ((slice(3, 6), gnss_std_m, 1.0), (slice(0, 3), 0.0, math.degrees(1.0))):
         _, vectors = np.linalg.eigh(covariance[block, block])
@@ -134,6 +148,7 @@ def std_parts(
             ("gnss", gnss**2),
             ("drive-pasts", max(along(combined) - fit, 0.0)),
             ("body", along(shape_covariance)),
+            ("readout", along(readout)),
         ]
         floor = 1e-9 * along(covariance)  # rounding, not a source
         found.append(tuple((name, unit * math.sqrt(var)) for name, var in variances if var > floor))
@@ -295,53 +310,43 @@ def final_fit(
     # part.
     # The detector's shift of every box is held at 0 by both classes (vehicle_model.ModelParams.fit_shift)
     # and considered with the body where the boxes are a real detector's.
-    shape_covariance = (
-        consider_covariance(
-            fit,
-            used,
-            trajectory,
-            camera,
-            vehicle,
-            model_params,
-            model.template_point_std_m,
-            model.shift_std_px,
-        )
-        if templated
-        else np.zeros((6, 6))
+    held_readout_std_s = joint.readout_std_s if model_params.readout_std_s <= HELD_STD else 0.0
+    body_std_m = model.template_point_std_m if templated else 0.0
+    shift_std_px = model.shift_std_px if templated else 0.0
+    moves = consider_moves(
+        fit, used, trajectory, camera, vehicle, model_params, body_std_m, shift_std_px, held_readout_std_s
     )
+    # A readout held at 0 is known only to the finding fit's std of it (joint_fit): the pose's response to
+    # the readout moved by that std is its own part of the covariance (the last row of the moves).
+    readout_moves = moves[len(moves) - 1 :, POSE_COLUMNS] if held_readout_std_s > 0.0 and len(moves) else None
+    body_moves = moves[: len(moves) - (readout_moves is not None), POSE_COLUMNS]
+    shape_covariance = body_moves.T @ body_moves
+    readout_covariance = np.zeros((6, 6)) if readout_moves is None else readout_moves.T @ readout_moves
     # The clock's std. The left-out fits' scatter (where the model fitted the clock) and what the consider
     # parameters do to it, with the clock free (a held clock is known only to the data's std): the body
     # the template cannot describe moves the vehicle along its track, which a shift of the clock mimics
     # (0.1 m at 10 m/s is 10 ms; the fit's own std alone missed the realistic world's clock by more than 3
     # of it in 46 of 229 runs), and a readout held at 0 shifts the boxes' rows' time.
-    clock_params = model_params
+    clock_moves = moves
     if model_params.time_shift_std_s <= HELD_STD:
         clock_params = replace(model_params, time_shift_std_s=model.time_shift_std_s)
-    held_readout_std_s = joint.readout_std_s if model_params.readout_std_s <= HELD_STD else 0.0
-    body_moves = consider_moves(
-        fit,
-        used,
-        trajectory,
-        camera,
-        vehicle,
-        clock_params,
-        model.template_point_std_m if templated else 0.0,
-        model.shift_std_px if templated else 0.0,
-        held_readout_std_s,
-    )[:, TIME_SHIFT]
+        clock_moves = consider_moves(
+            fit, used, trajectory, camera, vehicle, clock_params, body_std_m, shift_std_px, held_readout_std_s
+        )
+    clock = clock_moves[:, TIME_SHIFT]
     readout_part = 0.0
-    if held_readout_std_s > 0.0 and len(body_moves):
-        readout_part, body_moves = abs(float(body_moves[-1])), body_moves[:-1]
+    if held_readout_std_s > 0.0 and len(clock):
+        readout_part, clock = abs(float(clock[-1])), clock[:-1]
     time_parts = (
         ("fit", time_offset_std_s),
         ("drive-pasts", math.sqrt(check.time_shift_var_s2)),
-        ("body", math.sqrt(float(np.sum(body_moves**2)))),
+        ("body", math.sqrt(float(np.sum(clock**2)))),
         ("held readout", readout_part),
     )
     return FinalFit(
         fit=fit,
         check=check,
-        covariance=combined_covariance(fit, check) + shape_covariance,
+        covariance=combined_covariance(fit, check) + shape_covariance + readout_covariance,
         delta_p_mean_m=float("inf") if value is None else float(value),
         box_error_rel=model_box_error(fit, members, trajectory, camera, vehicle, model),
         # Drive-pasts counted from the data, but never more than the fit could hold against each other: two
@@ -362,6 +367,7 @@ def final_fit(
         time_offset_std_s=math.sqrt(sum(std**2 for _, std in time_parts)),
         time_offset_parts=time_parts,
         shape_covariance=shape_covariance,
+        readout_covariance=readout_covariance,
         body=body,
         gnss_offset_std_m=model_params.pose_bias_std_m,
     )

@@ -46,6 +46,7 @@ STD_SOURCES = {
     "body": "the vehicle's body shape, which the template cannot describe (and the detector's box "
     "convention): the same in every drive-past, so more of them do not lower it",
     "gnss": "the vehicle's GNSS offset, common to every pose",
+    "readout": "the camera's rolling-shutter readout, which the data could not tell from 0 (held there)",
 }
 
 

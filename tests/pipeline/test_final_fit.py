@@ -136,17 +136,24 @@ def _spd(draw_matrix: np.ndarray, scale: np.ndarray) -> np.ndarray:
     shape_m=arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0)),
     gnss=st.sampled_from([0.0, 0.05]),
     body=st.booleans(),
+    readout_m=st.one_of(st.none(), arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0))),
 )
 def test_std_parts_add_up_to_the_largest_std_in_quadrature(
-    fit_m: np.ndarray, scatter_m: np.ndarray, shape_m: np.ndarray, gnss: float, body: bool
+    fit_m: np.ndarray,
+    scatter_m: np.ndarray,
+    shape_m: np.ndarray,
+    gnss: float,
+    body: bool,
+    readout_m: np.ndarray | None,
 ) -> None:
     scale = np.array([0.002, 0.002, 0.002, 0.1, 0.1, 0.1])  # rad, m
     fit = _spd(fit_m, scale) + 1e-8 * np.eye(6)
     fit[3:, 3:] += gnss**2 * np.eye(3)
     combined = dominating_covariance(fit, _spd(scatter_m, scale))
     shape = _spd(shape_m, scale) if body else np.zeros((6, 6))
-    total = combined + shape
-    position, rotation = std_parts(total, fit, shape, gnss)
+    readout = None if readout_m is None else _spd(readout_m, scale)
+    total = combined + shape + (0.0 if readout is None else readout)
+    position, rotation = std_parts(total, fit, shape, gnss, readout)
     largest_m, largest_deg = largest_stds(total)
     assert math.sqrt(sum(std**2 for _, std in position)) == pytest.approx(largest_m, rel=1e-6)
     assert math.sqrt(sum(std**2 for _, std in rotation)) == pytest.approx(largest_deg, rel=1e-6)
@@ -154,6 +161,8 @@ def test_std_parts_add_up_to_the_largest_std_in_quadrature(
     assert all(std > 0.0 for _, std in position + rotation)
     if not body:
         assert "body" not in dict(position) and "body" not in dict(rotation)
+    if readout is None:
+        assert "readout" not in dict(position) and "readout" not in dict(rotation)
     assert dict(position).get("gnss", 0.0) == pytest.approx(gnss)
     assert "gnss" not in dict(rotation)
 
@@ -170,3 +179,7 @@ def test_std_parts_name_the_source_that_dominates() -> None:
         {"fit": 0.01, "gnss": 0.05, "drive-pasts": math.sqrt(0.3**2 - 0.01**2 - 0.05**2)}
     )
     assert dict(rotation) == pytest.approx({"fit": math.degrees(1e-3), "body": math.degrees(0.004)})
+    # A readout held at 0 that turns the camera about x by 0.01 rad is named as its own source there.
+    readout = np.diag([0.01**2, 0.0, 0.0, 0.0, 0.0, 0.0])
+    _, rotation = std_parts(total + readout, fit, shape, 0.05, readout)
+    assert dict(rotation) == pytest.approx({"fit": math.degrees(1e-3), "readout": math.degrees(0.01)})
