@@ -21,6 +21,7 @@ from pipeline.validation import count_traversals
 from pipeline.vehicle_model import (
     HELD_STD,
     POSE_COLUMNS,
+    READOUT,
     TIME_SHIFT,
     ModelFit,
     ModelParams,
@@ -72,6 +73,9 @@ class FinalFit:
     gnss_offset_std_m: float = 0.0  # the GNSS offset common to every pose, in the fit's covariance
     # Where time_offset_std_s comes from: (source, std s) pairs that add up in quadrature.
     time_offset_parts: tuple[tuple[str, float], ...] = ()
+    # The readout's std (reported in the stage note only): where fitted, the fit's with the body's share
+    # (consider parameters); where held at 0, what the data say (the finding fit's).
+    readout_std_s: float = 0.0
 
     def std_parts(self) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
         """Where the largest position std (m) and rotation std (deg) come from (`std_parts`)."""
@@ -104,7 +108,7 @@ class FinalFit:
                 f"body {self.body}; time offset {self.time_offset_ns(prior_ns) / 1e6:.1f} ms "
                 f"+- {self.time_offset_std_s * 1e3:.1f} ms{self._time_parts()}, "
                 f"readout {self.fit.readout_s * 1e3:.1f} ms "
-                f"+- {self.fit.readout_std_s * 1e3:.1f} ms, box rms {self.fit.box_rmse_px:.2f} px, "
+                f"+- {self.readout_std_s * 1e3:.1f} ms, box rms {self.fit.box_rmse_px:.2f} px, "
                 f"box error {100 * self.box_error_rel:.1f} %, fit std {self.fit.position_std_m:.3f} m / "
                 f"{self.fit.rotation_std_deg:.3f} deg, "
                 f"{self.check.traversals} traversals, leaving one out moves the pose up to "
@@ -321,6 +325,9 @@ def final_fit(
     readout_moves = moves[len(moves) - 1 :, POSE_COLUMNS] if held_readout_std_s > 0.0 and len(moves) else None
     body_moves = moves[: len(moves) - (readout_moves is not None), POSE_COLUMNS]
     shape_covariance = body_moves.T @ body_moves
+    readout_std_s = held_readout_std_s or math.hypot(
+        fit.readout_std_s, float(np.linalg.norm(moves[: len(body_moves), READOUT]))
+    )
     readout_covariance = np.zeros((6, 6)) if readout_moves is None else readout_moves.T @ readout_moves
     # The clock's std. The left-out fits' scatter (where the model fitted the clock) and what the consider
     # parameters do to it, with the clock free (a held clock is known only to the data's std): the body
@@ -366,6 +373,7 @@ def final_fit(
         tracks=tuple(used),
         time_offset_std_s=math.sqrt(sum(std**2 for _, std in time_parts)),
         time_offset_parts=time_parts,
+        readout_std_s=readout_std_s,
         shape_covariance=shape_covariance,
         readout_covariance=readout_covariance,
         body=body,

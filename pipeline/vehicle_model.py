@@ -63,6 +63,7 @@ _POSE, _DELTA, _SHAPE, _BIAS, _READOUT = slice(0, 6), 6, slice(7, 13), slice(13,
 N_PARAMS = 19
 TIME_SHIFT = _DELTA  # the time shift's column in a parameter vector (consider_moves)
 POSE_COLUMNS = _POSE  # the pose's columns [w, C] in a parameter vector
+READOUT = _READOUT  # the readout's column
 _HELD = 1e-6  # prior std of a parameter held at its start
 HELD_STD = _HELD  # a prior std at or below this holds its parameter
 # Tracks more than this apart in time (s) are separate drive-pasts for the leave-one-out check.

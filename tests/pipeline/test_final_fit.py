@@ -97,6 +97,10 @@ def test_the_clocks_std_adds_its_parts_in_quadrature_and_the_report_names_them()
     assert final.time_offset_std_s >= joint.time_offset_std_s
     note = final.report(0).notes[0]
     assert f"+- {final.time_offset_std_s * 1e3:.1f} ms" in note
+    # Global-shutter boxes: the readout is held at 0 and reported with what the data say about it.
+    assert final.fit.readout_s == 0.0 and final.fit.readout_std_s < 1e-6
+    assert final.readout_std_s == joint.readout_std_s > 0.0
+    assert f"readout 0.0 ms +- {final.readout_std_s * 1e3:.1f} ms" in note
 
 
 @pytest.mark.parametrize("batch_boxes", [1, 150, 4096])
