@@ -427,13 +427,14 @@ class _Model:
         self.f_scale = 2.0 / inflation  # the loss bends at 2 of a row's own std
         self._cache = {}  # rows are scaled anew
 
-    def set_skew(self, x: FloatArray) -> None:
+    def set_skew(self, x: FloatArray, always: bool = False) -> None:
         """The data's skew (_Data.skew) from the model at x: each edge's rate, and the row of the point that
         forms it. Noise-free, where the boxes' differences along a track would put their noise into the
         readout's regressor; held for the fit (rates and rows barely change with the small moves of the
         pose a fit makes from its start). Nothing to do where the readout is held at 0: the boxes are then
-        their own correction and the readout's column is pinned by its prior."""
-        if self.params.readout_std_s <= _HELD and x[_READOUT] == 0.0:
+        their own correction and the readout's column is pinned by its prior; `always` sets it there too (the
+        readout's whole response, for consider_moves)."""
+        if self.params.readout_std_s <= _HELD and x[_READOUT] == 0.0 and not always:
             return
         step = self.params.shape_step
         later = x.copy()
@@ -1296,6 +1297,8 @@ def consider_moves(
     model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
     if model.data_rows < 2 * N_PARAMS:
         return empty
+    if readout_std_s > 0.0:
+        model.set_skew(x, always=True)  # the readout moves the edges apart as well as the box's time
     model.weigh(x)  # the rows weighted as the fit's second pass weighted them
     r_all, J_all = model.residuals(x), model.jacobian(x)
     m = model.data_rows

@@ -802,3 +802,17 @@ def test_the_left_out_fits_scatter_of_the_clock_is_the_clocks_jackknife(jump_ms:
         assert jackknife_s > max(0.25 * jump_ms * 1e-3, 3 * fit.time_shift_std_s), (jackknife_s, fit)
     else:
         assert jackknife_s < fit.time_shift_std_s, (jackknife_s, fit.time_shift_std_s)
+
+
+def test_a_readout_held_at_exactly_zero_gets_its_whole_consider_response():
+    """The model sets the edges' skew only where the readout plays a part; the consider response to a held
+    readout needs it wherever the fit's readout is, 1e-16 s (where a held prior leaves it) or exactly 0."""
+    trajectory, tracks = _rolling_scene(READOUT_TRUE_S)
+    R0, t0 = _start()
+    held_params = replace(FLAT, readout_std_s=1e-9)
+    held = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, held_params)
+    moves = [
+        consider_moves(fit, tracks, trajectory, CAMERA, VEHICLE, held_params, 0.0, 0.0, READOUT_TRUE_S)
+        for fit in (replace(held, readout_s=1e-16), replace(held, readout_s=0.0))
+    ]
+    np.testing.assert_allclose(moves[1], moves[0], rtol=1e-6, atol=1e-12)
