@@ -64,7 +64,7 @@ class FinalFit:
     # fits' scatter, and what the body the template cannot describe and a readout held at 0 do to it.
     time_offset_std_s: float
     # The part of `covariance` from the body shape the template cannot describe (consider parameters,
-    # vehicle_model.consider_covariance, with the detector's shift); zero where the boxes are the cuboid's.
+    # vehicle_model.consider_moves, with the detector's shift); zero where the boxes are the cuboid's.
     shape_covariance: FloatArray
     # The part of `covariance` from a rolling-shutter readout held at 0 (known only to the finding fit's std
     # of it); zero where the model fitted it.
@@ -321,14 +321,14 @@ def final_fit(
         fit, used, trajectory, camera, vehicle, model_params, body_std_m, shift_std_px, held_readout_std_s
     )
     # A readout held at 0 is known only to the finding fit's std of it (joint_fit): the pose's response to
-    # the readout moved by that std is its own part of the covariance (the last row of the moves).
-    readout_moves = moves[len(moves) - 1 :, POSE_COLUMNS] if held_readout_std_s > 0.0 and len(moves) else None
-    body_moves = moves[: len(moves) - (readout_moves is not None), POSE_COLUMNS]
-    shape_covariance = body_moves.T @ body_moves
-    readout_std_s = held_readout_std_s or math.hypot(
-        fit.readout_std_s, float(np.linalg.norm(moves[: len(body_moves), READOUT]))
-    )
-    readout_covariance = np.zeros((6, 6)) if readout_moves is None else readout_moves.T @ readout_moves
+    # the readout moved by that std (the moves' last row) is its own part of the covariance.
+    body_moves, readout_moves = _split_readout_row(moves, held_readout_std_s > 0.0)
+    shape_covariance = body_moves[:, POSE_COLUMNS].T @ body_moves[:, POSE_COLUMNS]
+    readout_covariance = readout_moves[:, POSE_COLUMNS].T @ readout_moves[:, POSE_COLUMNS]
+    if held_readout_std_s > 0.0:
+        readout_std_s = held_readout_std_s
+    else:
+        readout_std_s = math.hypot(fit.readout_std_s, float(np.linalg.norm(body_moves[:, READOUT])))
     # The clock's std. The left-out fits' scatter (where the model fitted the clock) and what the consider
     # parameters do to it, with the clock free (a held clock is known only to the data's std): the body
     # the template cannot describe moves the vehicle along its track, which a shift of the clock mimics
@@ -340,15 +340,12 @@ def final_fit(
         clock_moves = consider_moves(
             fit, used, trajectory, camera, vehicle, clock_params, body_std_m, shift_std_px, held_readout_std_s
         )
-    clock = clock_moves[:, TIME_SHIFT]
-    readout_part = 0.0
-    if held_readout_std_s > 0.0 and len(clock):
-        readout_part, clock = abs(float(clock[-1])), clock[:-1]
+    body_clock, readout_clock = _split_readout_row(clock_moves, held_readout_std_s > 0.0)
     time_parts = (
         ("fit", time_offset_std_s),
         ("drive-pasts", math.sqrt(check.time_shift_var_s2)),
-        ("body", math.sqrt(float(np.sum(clock**2)))),
-        ("held readout", readout_part),
+        ("body", float(np.linalg.norm(body_clock[:, TIME_SHIFT]))),
+        ("held readout", float(np.linalg.norm(readout_clock[:, TIME_SHIFT]))),
     )
     return FinalFit(
         fit=fit,
@@ -379,6 +376,14 @@ def final_fit(
         body=body,
         gnss_offset_std_m=model_params.pose_bias_std_m,
     )
+
+
+def _split_readout_row(moves: FloatArray, has_readout_row: bool) -> tuple[FloatArray, FloatArray]:
+    """consider_moves' rows apart: (the body's and the box shift's, the held readout's: its last row when
+    asked for one, else none)."""
+    if has_readout_row and len(moves):
+        return moves[:-1], moves[-1:]
+    return moves, moves[:0]
 
 
 def _recognised(

@@ -110,7 +110,7 @@ class ModelParams:
     # drives those. Fitted, the shift ran to 6-15 px on the exact boxes of simulated bodies and turned the
     # camera 0.3-1 deg with it (true poses and clock; held at 0: 0.01-0.03 deg). So by default the shift is
     # held at 0 and its std is what the rotation can be known to: consider covariance
-    # (consider_covariance), not a fitted parameter. Detectors are trained on boxes drawn symmetric about
+    # (consider_moves), not a fitted parameter. Detectors are trained on boxes drawn symmetric about
     # the object: 2 px.
     shift_std_px: float = 2.0
     fit_shift: bool = False
@@ -1251,31 +1251,6 @@ def _median_relative_misfit(residuals: FloatArray, boxes: Boxes) -> float:
     return float(np.median(np.nanmax(residuals[rows], axis=1) / heights))
 
 
-def consider_covariance(
-    fit: ModelFit,
-    tracks: Sequence[MatchedTrack],
-    trajectory: Trajectory,
-    camera: CameraModel,
-    vehicle: VehicleProfile,
-    params: ModelParams,
-    point_std_m: float,
-    shift_std_px: float,
-) -> FloatArray:
-    """Pose covariance (6, 6) [w, C] of what the fit holds but the world may not (Schmidt's consider
-    parameters): the body shape the fitted template cannot describe, and the detector's shift of every box.
-
-    Each consider parameter, moved by its std, changes the model boxes; the fit's own linear solution (pose,
-    time shift, template and convention together, as `params` fitted them, so the fitted nuisance parameters
-    absorb what they can) maps each change to a pose move, and the moves' outer products add up to the
-    covariance. The parameters: each template point displaced by `point_std_m` along each body axis in turn
-    (36 displacements; the data cannot tell them from the pose: every view of the body shares them, and
-    fitted to the truth's own tracks from the true pose the template still landed 0.15-0.5 m / 0.1-0.45 deg
-    off with a sandwich std of 0.07-0.1 m / 0.09-0.12 deg), and every box shifted by `shift_std_px` in x,
-    then in y (ModelParams.fit_shift: held, never fitted, by default). Zero when both stds are 0."""
-    moves = consider_moves(fit, tracks, trajectory, camera, vehicle, params, point_std_m, shift_std_px)
-    return np.asarray(moves[:, _POSE].T @ moves[:, _POSE], dtype=np.float64)
-
-
 def consider_moves(
     fit: ModelFit,
     tracks: Sequence[MatchedTrack],
@@ -1287,10 +1262,19 @@ def consider_moves(
     shift_std_px: float,
     readout_std_s: float = 0.0,
 ) -> FloatArray:
-    """The fit's response (K, N_PARAMS) to each consider parameter moved by its std (consider_covariance),
-    every parameter's move, not only the pose's: the time shift's column is what the body does to the
-    clock. `readout_std_s` adds one more: the readout moved by that std, for a fit that held it (a readout
-    the data could not tell from 0 is known only to their std). (0, N_PARAMS) when there is none."""
+    """What the fit holds but the world may not (Schmidt's consider parameters): the fit's response
+    (K, N_PARAMS) to each moved by its std, one row each. The pose columns' outer product is the pose's
+    consider covariance; the time shift's column is what they do to the clock.
+
+    Each consider parameter changes the model boxes; the fit's own linear solution (pose, time shift,
+    template and convention together, as `params` fitted them, so the fitted nuisance parameters absorb what
+    they can) maps the change to a move of every parameter. The parameters, in row order: every box shifted
+    by `shift_std_px` in x, then in y (ModelParams.fit_shift: held, never fitted, by default); each template
+    point displaced by `point_std_m` along each body axis in turn (36 rows; the data cannot tell them from
+    the pose: every view of the body shares them, and fitted to the truth's own tracks from the true pose
+    the template still landed 0.15-0.5 m / 0.1-0.45 deg off with a sandwich std of 0.07-0.1 m / 0.09-0.12
+    deg); last, with `readout_std_s`, the readout moved by that std, for a fit that held it (a readout the
+    data could not tell from 0 is known only to their std). (0, N_PARAMS) when every std is 0."""
     empty = np.zeros((0, N_PARAMS))
     if point_std_m <= 0.0 and shift_std_px <= 0.0 and readout_std_s <= 0.0:
         return empty

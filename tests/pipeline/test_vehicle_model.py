@@ -35,7 +35,6 @@ from pipeline.vehicle_model import (
     _Model,
     _traversal_clusters,
     check_traversals,
-    consider_covariance,
     consider_moves,
     cuboid_params,
     cuboid_rejection,
@@ -466,7 +465,7 @@ def _data_from(tracks, sampler):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# What the fit holds but the world may not (consider_covariance): the body the template cannot describe and
+# What the fit holds but the world may not (consider_moves): the body the template cannot describe and
 # the detector's shift of every box.
 # ---------------------------------------------------------------------------------------------------------
 
@@ -512,6 +511,12 @@ def _largest_stds(covariance: np.ndarray) -> tuple[float, float]:
         math.sqrt(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1])),
         math.degrees(math.sqrt(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]))),
     )
+
+
+def consider_covariance(fit, tracks, trajectory, camera, vehicle, params, point_std_m, shift_std_px):
+    """The pose's consider covariance (6, 6) [w, C]: the outer product of consider_moves' pose columns."""
+    moves = consider_moves(fit, tracks, trajectory, camera, vehicle, params, point_std_m, shift_std_px)
+    return moves[:, :6].T @ moves[:, :6]
 
 
 def test_a_body_the_template_cannot_describe_is_covered_by_the_consider_covariance():
@@ -741,11 +746,10 @@ def test_a_body_the_template_cannot_describe_moves_the_clock_within_its_consider
         std: consider_moves(fit, tracks, trajectory, CAMERA, VEHICLE, params, std, 0.0) for std in (0.05, 0.1)
     }
     assert moves[0.1].shape == (36, N_PARAMS)
-    # Its pose columns are the consider covariance's.
-    np.testing.assert_allclose(
-        moves[0.1][:, :6].T @ moves[0.1][:, :6],
-        consider_covariance(fit, tracks, trajectory, CAMERA, VEHICLE, params, 0.1, 0.0),
-    )
+    # A held readout's row comes last and leaves the body's rows as they were.
+    with_readout = consider_moves(fit, tracks, trajectory, CAMERA, VEHICLE, params, 0.1, 0.0, 0.01)
+    assert with_readout.shape == (37, N_PARAMS)
+    np.testing.assert_allclose(with_readout[:36], moves[0.1])
     clock_s = {std: float(np.linalg.norm(m[:, TIME_SHIFT])) for std, m in moves.items()}
     assert clock_s[0.05] > 0.0
     assert 1.6 < clock_s[0.1] / clock_s[0.05] < 2.4  # linear, to the secant's bend (see above)
