@@ -277,6 +277,22 @@ def test_a_drive_past_from_a_moved_camera_is_caught(moved_m: float, turned_deg: 
     assert "traversal 5's boxes pull the others' pose" in check.disagreeing
 
 
+def test_a_drive_past_from_a_camera_turned_1_deg_is_caught_in_every_scene():
+    """Ten noise draws of the 1 deg case above. The full fit takes up a readout to absorb the turned
+    drive-past (55-69 ms; there is none); held to it exactly, the others' refits missed the turn in 4 of
+    the 10 (vehicle_model._quick)."""
+    params = ModelParams()
+    R0, t0 = _start(2)
+    missed = []
+    for seed in range(1, 11):
+        trajectory, tracks = _five_passes(0.0, 1.0, seed=seed)
+        fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
+        left_out = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+        if not check_traversals(left_out, trajectory, CAMERA, VEHICLE, params).disagreeing:
+            missed.append(seed)
+    assert missed == []
+
+
 @pytest.mark.parametrize(("moved_m", "turned_deg"), [(0.4, 0.6), (0.0, 0.5), (1.0, 0.0)])
 def test_a_camera_moved_between_the_halves_is_caught(moved_m: float, turned_deg: float):
     """Three drive-pasts, then the camera knocked, then three more: leaving one out keeps both sides in every
@@ -714,9 +730,10 @@ def test_a_global_shutter_gives_a_readout_of_zero():
     assert np.linalg.norm(fit.camera_centre - C_TRUE) < 1e-3
 
 
-def test_the_fits_that_leave_a_drive_past_out_keep_the_cameras_readout():
+def test_the_fits_that_leave_a_drive_past_out_keep_to_the_cameras_readout():
     # A single drive-past keeps to a band of rows, where the readout trades off against the clock: the
-    # checks' refits hold the readout at the full fit's value (a property of the camera), and so agree.
+    # checks' refits take the full fit's readout as their prior, at its std (a property of the camera), and
+    # so agree (measured: 29.2, 28.8 and 28.4 ms against 29.0 +- 10.5 ms).
     trajectory, tracks = _rolling_scene(READOUT_TRUE_S)
     R0, t0 = _start()
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, FLAT)
@@ -724,9 +741,20 @@ def test_the_fits_that_leave_a_drive_past_out_keep_the_cameras_readout():
     assert len(left_out.fits) == 3
     for loo in left_out.fits:
         assert not isinstance(loo, str)
-        assert abs(loo.readout_s - fit.readout_s) < 1e-5
+        assert abs(loo.readout_s - fit.readout_s) < fit.readout_std_s
+        assert abs(loo.time_shift_s - fit.time_shift_s) < 1e-3
     check = check_traversals(left_out, trajectory, CAMERA, VEHICLE, FLAT)
     assert check.disagreeing == ""
+
+
+def test_the_checks_refits_hold_a_readout_the_full_fit_held():
+    trajectory, tracks = _rolling_scene(0.0)
+    R0, t0 = _start()
+    held = replace(FLAT, readout_std_s=1e-9)
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, held)
+    for loo in leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, held).fits:
+        assert not isinstance(loo, str)
+        assert abs(loo.readout_s - fit.readout_s) < 1e-9  # a prior of 1 us std: held
 
 
 # ---------------------------------------------------------------------------------------------------------
