@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -68,7 +68,7 @@ class FinalFit:
     shape_covariance: FloatArray
     # The part of `covariance` from a rolling-shutter readout held at 0 (known only to the finding fit's std
     # of it); zero where the model fitted it.
-    readout_covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    readout_covariance: FloatArray
     body: str = "the template"  # which body model the pose comes from, and why
     gnss_offset_std_m: float = 0.0  # the GNSS offset common to every pose, in the fit's covariance
     # Where time_offset_std_s comes from: (source, std s) pairs that add up in quadrature.
@@ -127,7 +127,7 @@ def std_parts(
     fit_covariance: FloatArray,
     shape_covariance: FloatArray,
     gnss_std_m: float,
-    readout_covariance: FloatArray | None = None,
+    readout_covariance: FloatArray,
 ) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
     """Where the largest position std (m) and rotation std (deg) of a final covariance (6, 6) [w, C] come
     from, as (source, std) pairs that add up in quadrature along that std's direction
@@ -136,8 +136,8 @@ def std_parts(
     traversal check raised the fit's covariance by: `covariance - shape_covariance - fit_covariance`) and
     the body shape the template cannot describe (`shape_covariance`), and a readout held at 0
     (`readout_covariance`). Sources of no variance (below 1e-9 of the total: rounding) are left out."""
-    readout = np.zeros((6, 6)) if readout_covariance is None else readout_covariance
-    combined = covariance - shape_covariance - readout  # combined_covariance: at least the fit's everywhere
+    # combined_covariance: at least the fit's in every direction
+    combined = covariance - shape_covariance - readout_covariance
     found: list[tuple[tuple[str, float], ...]] = []
     for block, gnss, unit in ((slice(3, 6), gnss_std_m, 1.0), (slice(0, 3), 0.0, math.degrees(1.0))):
         _, vectors = np.linalg.eigh(covariance[block, block])
@@ -152,7 +152,7 @@ def std_parts(
             ("gnss", gnss**2),
             ("drive-pasts", max(along(combined) - fit, 0.0)),
             ("body", along(shape_covariance)),
-            ("readout", along(readout)),
+            ("readout", along(readout_covariance)),
         ]
         floor = 1e-9 * along(covariance)  # rounding, not a source
         found.append(tuple((name, unit * math.sqrt(var)) for name, var in variances if var > floor))

@@ -155,8 +155,8 @@ def test_std_parts_add_up_to_the_largest_std_in_quadrature(
     fit[3:, 3:] += gnss**2 * np.eye(3)
     combined = dominating_covariance(fit, _spd(scatter_m, scale))
     shape = _spd(shape_m, scale) if body else np.zeros((6, 6))
-    readout = None if readout_m is None else _spd(readout_m, scale)
-    total = combined + shape + (0.0 if readout is None else readout)
+    readout = np.zeros((6, 6)) if readout_m is None else _spd(readout_m, scale)
+    total = combined + shape + readout
     position, rotation = std_parts(total, fit, shape, gnss, readout)
     largest_m, largest_deg = largest_stds(total)
     assert math.sqrt(sum(std**2 for _, std in position)) == pytest.approx(largest_m, rel=1e-6)
@@ -165,7 +165,7 @@ def test_std_parts_add_up_to_the_largest_std_in_quadrature(
     assert all(std > 0.0 for _, std in position + rotation)
     if not body:
         assert "body" not in dict(position) and "body" not in dict(rotation)
-    if readout is None:
+    if readout_m is None:
         assert "readout" not in dict(position) and "readout" not in dict(rotation)
     assert dict(position).get("gnss", 0.0) == pytest.approx(gnss)
     assert "gnss" not in dict(rotation)
@@ -177,7 +177,7 @@ def test_std_parts_name_the_source_that_dominates() -> None:
     scatter = np.diag([1e-6, 1e-6, 1e-6, 0.3**2, 0.01**2, 0.01**2])  # drive-pasts disagree along x
     shape = np.diag([0.0, 0.0, 0.004**2, 0.0, 0.0, 0.2**2])  # the body: height, and a turn about z
     total = dominating_covariance(fit, scatter) + shape
-    position, rotation = std_parts(total, fit, shape, 0.05)
+    position, rotation = std_parts(total, fit, shape, 0.05, np.zeros((6, 6)))
     # The largest position std is along x: the scatter's 0.3 m over the fit's 0.01 m and the GNSS 0.05 m.
     assert dict(position) == pytest.approx(
         {"fit": 0.01, "gnss": 0.05, "drive-pasts": math.sqrt(0.3**2 - 0.01**2 - 0.05**2)}
