@@ -348,14 +348,16 @@ def origin_transform(result: CalibrationResult) -> bytes:
 
 
 def camera_calibration(result: CalibrationResult) -> bytes:
-    """The result's intrinsics as foxglove.CameraCalibration (OpenCV plumb_bob: D = k1, k2, p1, p2, k3)."""
+    """The result's intrinsics as foxglove.CameraCalibration: OpenCV's plumb_bob, D = k1, k2, p1, p2, k3 (4
+    coefficients padded with k3 = 0), or its rational_polynomial, D = k1, k2, p1, p2, k3, k4, k5, k6."""
     k = result.intrinsics
+    rational = len(k.dist) == 8
     message = CameraCalibration(
         frame_id=camera_frame_id(result.rsu_id, result.camera_id),
         width=k.width,
         height=k.height,
-        distortion_model="plumb_bob",
-        D=list(k.dist),
+        distortion_model="rational_polynomial" if rational else "plumb_bob",
+        D=list(k.dist) if rational else [*k.dist, *[0.0] * (5 - len(k.dist))],
         K=[k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0],
         R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
         P=[k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0],

@@ -225,7 +225,9 @@ class ViewCoverage:
         else:
             self._ground = (float(point_height_m), 0.0, 0.0)
         self._intr = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
-        self._dist = tuple(float(v) for v in intrinsics.dist)
+        # [k1, k2, p1, p2, k3, k4, k5, k6]: OpenCV's 4 or 5 coefficients padded (the rational terms 0).
+        dist = [float(v) for v in intrinsics.dist]
+        self._dist = (*dist, *[0.0] * (8 - len(dist)))
         self._has_dist = any(v != 0.0 for v in self._dist)
         u_lo, v_lo = -margin_px, -margin_px
         u_hi, v_hi = intrinsics.width + margin_px, intrinsics.height + margin_px
@@ -296,9 +298,9 @@ class ViewCoverage:
         if not (x_lo <= xn <= x_hi and y_lo <= yn <= y_hi):
             return False
         if self._has_dist:
-            k1, k2, p1, p2, k3 = self._dist
+            k1, k2, p1, p2, k3, k4, k5, k6 = self._dist
             r2 = xn * xn + yn * yn
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
             xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
             yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
         else:

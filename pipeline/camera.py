@@ -1,4 +1,5 @@
-"""Camera geometry: OpenCV pinhole + [k1, k2, p1, p2, k3] distortion, rotations, camera poses.
+"""Camera geometry: OpenCV pinhole + [k1, k2, p1, p2, k3] distortion (or the rational model's
+[k1, k2, p1, p2, k3, k4, k5, k6]), rotations, camera poses.
 
 Conventions (docs/design.md): camera frame x right, y down, z forward; X_cam = R_cam_from_local @ X_local + t.
 Projection is our own vectorised numpy (bit-compatible with cv2.projectPoints, see the property tests)
@@ -28,7 +29,8 @@ MAX_MODEL_RADIUS = 10.0
 
 @dataclass(frozen=True, slots=True)
 class CameraModel:
-    """Intrinsics as arrays: K (3, 3) and dist (5,) = [k1, k2, p1, p2, k3]; image size in pixels."""
+    """Intrinsics as arrays: K (3, 3) and dist (5,) = [k1, k2, p1, p2, k3], or (8,) with the rational
+    model's k4, k5, k6 (`opencv_dist`: any of OpenCV's 4, 5 or 8 given); image size in pixels."""
 
     K: FloatArray
     dist: FloatArray
@@ -44,6 +46,7 @@ class CameraModel:
     undistorted_limit: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "dist", opencv_dist(self.dist))
         object.__setattr__(self, "has_distortion", bool(np.any(np.asarray(self.dist) != 0.0)))
         r_limit, rho_limit = model_radius_limits(np.asarray(self.dist, dtype=np.float64))
         object.__setattr__(self, "radius_limit", rho_limit)
@@ -72,6 +75,18 @@ class CameraModel:
         )
 
 
+def opencv_dist(values: object) -> FloatArray:
+    """An OpenCV distortion vector of 4 [k1, k2, p1, p2], 5 (+ k3) or 8 (+ k4, k5, k6: the rational model)
+    values as the pipeline holds it: (5,), or (8,) when the rational terms are not all 0. The two give the
+    same projection where they are (the rational model's denominator is then exactly 1)."""
+    dist = np.asarray(values, dtype=np.float64).reshape(-1)
+    if len(dist) not in (4, 5, 8):
+        raise ValueError(f"dist: {len(dist)} coefficients, expected 4, 5 or 8 (OpenCV's pinhole models)")
+    if len(dist) == 8 and np.any(dist[5:] != 0.0):
+        return dist.copy()
+    return np.concatenate([dist[:5], np.zeros(5 - min(len(dist), 5))])
+
+
 def lens_model_note(intrinsics: CameraIntrinsics) -> str | None:
     """A warning when the lens model turns back inside the image (`model_radius_limit`), else None."""
     camera = CameraModel.from_intrinsics(intrinsics)
@@ -90,37 +105,62 @@ def lens_model_note(intrinsics: CameraIntrinsics) -> str | None:
 
 
 def model_radius_limit(dist: FloatArray) -> float:
-    """The distorted normalised radius rho out to which the radial model rho = r (1 + k1 r^2 + k2 r^4 +
-    k3 r^6) is used: where d rho / d r first falls to MIN_RADIAL_MAGNIFICATION, searched out to
-    MAX_MODEL_RADIUS (inf if it never does). The tangential terms (p1, p2: a few thousandths) are left out."""
+    """The distorted normalised radius rho out to which the radial model rho = r f(r^2) is used (f = 1 +
+    k1 r^2 + k2 r^4 + k3 r^6, divided by 1 + k4 r^2 + k5 r^4 + k6 r^6 in the rational model): where d rho /
+    d r first falls to MIN_RADIAL_MAGNIFICATION, or the rational model's denominator to 0, searched out to
+    MAX_MODEL_RADIUS (inf if neither happens). The tangential terms (p1, p2: a few thousandths) are left
+    out."""
     return model_radius_limits(dist)[1]
 
 
 def model_radius_limits(dist: FloatArray) -> tuple[float, float]:
-    """(r, rho): the undistorted normalised radius where the lens model's radial magnification falls to
-    MIN_RADIAL_MAGNIFICATION, and the distorted radius it maps to (`model_radius_limit`); (inf, inf) if it
-    never does."""
-    k1, k2, k3 = float(dist[0]), float(dist[1]), float(dist[4])
+    """(r, rho): the undistorted normalised radius where the lens model stops holding
+    (`model_radius_limit`), and the distorted radius it maps to; (inf, inf) if it never does."""
+    lens = opencv_dist(dist)
 
-    def slope(r: FloatArray) -> FloatArray:
-        u = r * r
-        return np.asarray(1.0 + u * (3.0 * k1 + u * (5.0 * k2 + u * 7.0 * k3)))
+    def beyond(r: FloatArray) -> FloatArray:
+        with np.errstate(divide="ignore", invalid="ignore"):  # at and past a rational model's pole
+            radial, d_radial = _radial_terms(r * r, lens)
+            slope = radial + 2.0 * r * r * d_radial  # d (r radial(r^2)) / d r
+        return np.asarray((slope <= MIN_RADIAL_MAGNIFICATION) | ~(_denominator(r * r, lens) > 0.0))
 
-    # A scan, then bisection: robust for any coefficients (a root finder on the cubic overflows when the
-    # leading coefficient is tiny) and cheap (once per camera).
+    # A scan, then bisection: robust for any coefficients (a root finder on the polynomials overflows when
+    # the leading coefficient is tiny) and cheap (once per camera).
     r = np.linspace(0.0, MAX_MODEL_RADIUS, 10001)
-    low = np.flatnonzero(slope(r) <= MIN_RADIAL_MAGNIFICATION)
+    low = np.flatnonzero(beyond(r))
     if len(low) == 0:
         return math.inf, math.inf
     a, b = float(r[low[0] - 1]), float(r[low[0]])  # slope(0) = 1: low[0] >= 1
     for _ in range(60):
         mid = 0.5 * (a + b)
-        if float(slope(np.array(mid))) <= MIN_RADIAL_MAGNIFICATION:
+        if bool(beyond(np.array([mid]))[0]):
             b = mid
         else:
             a = mid
-    u = b * b
-    return b, b * (1.0 + u * (k1 + u * (k2 + u * k3)))
+    if not _denominator(np.array([b * b]), lens)[0] > 0.0:
+        b = a  # the rational model's pole: b has no finite image, a is just inside
+    return b, b * float(_radial_terms(np.array([b * b]), lens)[0][0])
+
+
+def _denominator(r2: FloatArray, dist: FloatArray) -> FloatArray:
+    """The rational model's denominator 1 + k4 r^2 + k5 r^4 + k6 r^6 (1 without one) at r2 = r^2."""
+    if len(dist) < 8:
+        return np.ones_like(r2)
+    return np.asarray(1.0 + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7])), dtype=np.float64)
+
+
+def _radial_terms(r2: FloatArray, dist: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The radial factor at squared undistorted radii r2 and its derivative d / d r2, for a (5,) or (8,)
+    `opencv_dist` vector."""
+    k1, k2, k3 = dist[0], dist[1], dist[4]
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    if len(dist) < 8:
+        return radial, d_radial
+    denominator = _denominator(r2, dist)
+    d_denominator = dist[5] + r2 * (2.0 * dist[6] + 3.0 * dist[7] * r2)
+    quotient = radial / denominator
+    return quotient, (d_radial - quotient * d_denominator) / denominator
 
 
 def within_model(x: FloatArray, y: FloatArray, limit: float) -> tuple[FloatArray, FloatArray]:
@@ -169,10 +209,9 @@ def _radial_and_jacobian(
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """The distortion model's radial factor at undistorted normalised (x, y) and its 2 x 2 Jacobian
     d(xd, yd) / d(x, y) as j11, j12 (= j21), j22."""
-    k1, k2, p1, p2, k3 = dist
+    p1, p2 = dist[2], dist[3]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    radial, d_radial = _radial_terms(r2, dist)  # and d radial / d r2
     j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
     j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
     j22 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
@@ -180,16 +219,18 @@ def _radial_and_jacobian(
 
 
 def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
-    """Apply the OpenCV radial-tangential model to normalised coordinates (N, 2) -> (N, 2)."""
+    """Apply the OpenCV radial-tangential model (`distort_xy`) to normalised coordinates (N, 2) -> (N, 2)."""
     return np.stack(distort_xy(xy[:, 0], xy[:, 1], dist), axis=1)
 
 
 def distort_xy(x: FloatArray, y: FloatArray, dist: FloatArray) -> tuple[FloatArray, FloatArray]:
     """`distort_normalized` on the normalised coordinates as two arrays x, y (same shape) -> (xd, yd), for
-    callers that use the columns apart (the straight-track solver's inner loop)."""
-    k1, k2, p1, p2, k3 = dist
+    callers that use the columns apart (the straight-track solver's inner loop). `dist` (5,) or (8,)."""
+    k1, k2, p1, p2, k3 = dist[:5]
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    if len(dist) > 5:
+        radial = radial / (1.0 + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7])))
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return xd, yd
@@ -241,7 +282,7 @@ def undistort_pixels(pixels: Pixels, camera: CameraModel) -> FloatArray:
     target = _normalised(pixels, camera.K)
     if not camera.has_distortion:
         return target
-    return _invert_distortion(target, camera.dist)
+    return _invert_distortion(target, camera.dist, camera.undistorted_limit)
 
 
 def _normalised(pixels: Pixels, K: FloatArray) -> FloatArray:
@@ -256,14 +297,31 @@ def _normalised(pixels: Pixels, K: FloatArray) -> FloatArray:
     )
 
 
-def _invert_distortion(xy_distorted: FloatArray, dist: FloatArray) -> FloatArray:
+def _invert_distortion(xy_distorted: FloatArray, dist: FloatArray, limit: float = math.inf) -> FloatArray:
     """Solve distort_normalized(xy) = xy_distorted by Newton's method with the analytic 2x2 Jacobian.
 
     Starts from the distorted point; converges to ~1e-14 in a few steps for any lens whose model is
-    monotonic over the image (OpenCV's own fixed-point loop stalls on strong barrel distortion).
+    monotonic over the image (OpenCV's own fixed-point loop stalls on strong barrel distortion). Steps are
+    held within the undistorted radius `limit` where the model holds (`CameraModel.undistorted_limit`):
+    beyond it a model that turns back maps other directions to the same pixels. Where that start fails (a
+    strong pincushion pixel starts further out than its direction, and Newton's method can leave for the
+    turn or through the centre), the radial part is solved first by bisection on [0, limit], where the
+    model is monotonic, and Newton's method finishes from there.
     """
-    _, _, p1, p2, _ = dist
-    xy = xy_distorted.copy()
+    xy = _newton_undistort(xy_distorted, xy_distorted.copy(), dist, limit)
+    if math.isinf(limit):
+        return xy
+    xd, yd = distort_xy(xy[:, 0], xy[:, 1], dist)
+    missed = ~(np.hypot(xd - xy_distorted[:, 0], yd - xy_distorted[:, 1]) <= 1e-9)
+    if missed.any():
+        start = _radial_start(xy_distorted[missed], dist, limit)
+        xy[missed] = _newton_undistort(xy_distorted[missed], start, dist, limit)
+    return xy
+
+
+def _newton_undistort(xy_distorted: FloatArray, xy: FloatArray, dist: FloatArray, limit: float) -> FloatArray:
+    """`_invert_distortion`'s Newton iterations from `xy` (changed in place and returned)."""
+    p1, p2 = dist[2], dist[3]
     for _ in range(30):
         x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
@@ -277,9 +335,24 @@ def _invert_distortion(xy_distorted: FloatArray, dist: FloatArray) -> FloatArray
         dy = (j11 * fy - j21 * fx) / det
         xy[:, 0] -= dx
         xy[:, 1] -= dy
+        xy[:, 0], xy[:, 1] = within_model(xy[:, 0], xy[:, 1], limit)
         if float(np.max(np.abs(dx) + np.abs(dy), initial=0.0)) < 1e-15:
             break
     return xy
+
+
+def _radial_start(xy_distorted: FloatArray, dist: FloatArray, limit: float) -> FloatArray:
+    """The points (N, 2) in the distorted points' directions whose radial distortion alone gives their
+    radius: r f(r^2) = |xy_distorted| solved by bisection on [0, limit] (monotonic there); the rim for a
+    radius beyond the model's."""
+    rho = np.hypot(xy_distorted[:, 0], xy_distorted[:, 1])
+    low, high = np.zeros(len(rho)), np.full(len(rho), limit)
+    for _ in range(60):
+        mid = 0.5 * (low + high)
+        inside = mid * _radial_terms(mid * mid, dist)[0] < rho
+        low, high = np.where(inside, mid, low), np.where(inside, high, mid)
+    scale = np.where(rho > 0.0, low / np.where(rho > 0.0, rho, 1.0), 1.0)
+    return np.asarray(xy_distorted * scale[:, None], dtype=np.float64)
 
 
 def rotation_from_ypr(yaw: FloatArray, pitch: FloatArray, roll: FloatArray) -> FloatArray:

@@ -443,7 +443,8 @@ def load_daemon_config(path: Path) -> DaemonConfig:
 
 
 def load_intrinsics(path: Path) -> CameraIntrinsics:
-    """camera.yaml: exactly width, height, fx, fy, cx, cy (px) and optional dist [k1, k2, p1, p2, k3]."""
+    """camera.yaml: exactly width, height, fx, fy, cx, cy (px) and optional dist (OpenCV's
+    [k1, k2, p1, p2], [k1, k2, p1, p2, k3] or [k1, k2, p1, p2, k3, k4, k5, k6])."""
     return _load_model_yaml(Path(path), CameraIntrinsics)
 
 

@@ -11,7 +11,15 @@ import re
 from collections.abc import Mapping
 from typing import Annotated, Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PlainValidator,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 # 2000..2200 in ns: rejects seconds, milliseconds or microseconds passed where nanoseconds belong (a stamp
 # in seconds read as ns falls in January 1970) and negative or overflowed stamps.
@@ -123,6 +131,11 @@ class Box(StrictModel):
         return self
 
 
+# OpenCV's pinhole distortion vectors the pipeline models: [k1, k2, p1, p2], + k3 (OpenCV's default, ROS's
+# plumb_bob), + k4, k5, k6 (the rational model, CALIB_RATIONAL_MODEL; ROS's rational_polynomial).
+DIST_LENGTHS = (4, 5, 8)
+
+
 class CameraIntrinsics(StrictModel):
     """Pinhole + OpenCV distortion; YAML keys exactly width, height, fx, fy, cx, cy, dist."""
 
@@ -132,9 +145,23 @@ class CameraIntrinsics(StrictModel):
     fy: float = Field(gt=0.0, le=1e6, allow_inf_nan=False, description="focal length y, px")
     cx: float = Field(ge=-1e5, le=1e5, allow_inf_nan=False, description="principal point x, px")
     cy: float = Field(ge=-1e5, le=1e5, allow_inf_nan=False, description="principal point y, px")
-    dist: tuple[Finite, Finite, Finite, Finite, Finite] = Field(
-        default=(0.0, 0.0, 0.0, 0.0, 0.0), description="OpenCV distortion [k1, k2, p1, p2, k3]"
+    dist: tuple[Finite, ...] = Field(
+        default=(0.0, 0.0, 0.0, 0.0, 0.0),
+        description="OpenCV distortion: [k1, k2, p1, p2], [k1, k2, p1, p2, k3] or the rational model's "
+        "[k1, k2, p1, p2, k3, k4, k5, k6]",
+        json_schema_extra={"minItems": 4, "maxItems": 8},  # and not 6 or 7 (checked below)
     )
+
+    @field_validator("dist")
+    @classmethod
+    def _dist_length(cls, dist: tuple[float, ...]) -> tuple[float, ...]:
+        if len(dist) not in DIST_LENGTHS:
+            raise ValueError(
+                f"{len(dist)} coefficients; OpenCV's pinhole model takes 4 [k1, k2, p1, p2], 5 (+ k3) or 8 "
+                "(+ k3, k4, k5, k6: the rational model); the thin-prism and tilted models (12, 14) are not "
+                "supported"
+            )
+        return dist
 
 
 class VehicleProfile(StrictModel):

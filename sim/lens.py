@@ -1,4 +1,5 @@
-"""The simulated camera's lens: OpenCV's pinhole + [k1, k2, p1, p2, k3] model, through OpenCV itself.
+"""The simulated camera's lens: OpenCV's pinhole + [k1, k2, p1, p2, k3] model (or the rational model's
+[k1, k2, p1, p2, k3, k4, k5, k6]), through OpenCV itself.
 
 It projects with cv2.projectPoints and inverts the lens with cv2.undistortPoints (tight stopping
 criterion), never with the pipeline's own numpy projection: a sign or convention slip in either shows up
@@ -22,7 +23,7 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-
 
 @dataclass(frozen=True, eq=False)
 class Lens:
-    """Intrinsics as OpenCV wants them: K (3, 3), dist (5,), image size; `valid_radius` is the largest
+    """Intrinsics as OpenCV wants them: K (3, 3), dist (5,) or (8,), image size; `valid_radius` is the largest
     undistorted normalised radius the polynomial is trusted at (it folds back far outside the image)."""
 
     K: FloatArray

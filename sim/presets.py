@@ -163,7 +163,8 @@ class CameraSpec:
     fx: float = 1400.0
     fy: float | None = None  # None: fx (square pixels)
     principal_offset_px: tuple[float, float] = (0.0, 0.0)  # (cx, cy) minus the image centre
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    # OpenCV's [k1, k2, p1, p2, k3], or with the rational model's k4, k5, k6
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def look_at(
@@ -176,7 +177,7 @@ def look_at(
     height: int = 1200,
     fx: float = 1400.0,
     principal_offset_px: tuple[float, float] = (0.0, 0.0),
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0),
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0),
 ) -> CameraSpec:
     """A camera at (x, y, height) aimed at a ground point `target` (x, y): yaw and tilt computed."""
     dx, dy = target[0] - x_m, target[1] - y_m

@@ -182,6 +182,26 @@ def test_origin_transform_and_camera_calibration() -> None:
     assert info.timestamp.ToNanoseconds() == STAMP_NS
 
 
+RATIONAL = (2.1, 0.6, 4e-4, -3e-4, 0.01, 2.45, 1.3, 0.08)
+
+
+@pytest.mark.parametrize(
+    ("dist", "model", "D"),
+    [
+        ((-0.1, 0.02, 0.001, 0.002), "plumb_bob", [-0.1, 0.02, 0.001, 0.002, 0.0]),
+        (RATIONAL, "rational_polynomial", list(RATIONAL)),
+    ],
+)
+def test_camera_calibration_names_the_distortion_model(
+    dist: tuple[float, ...], model: str, D: list[float]
+) -> None:
+    result = _result(np.eye(3), np.zeros(3))
+    result = result.model_copy(update={"intrinsics": result.intrinsics.model_copy(update={"dist": dist})})
+    info = CameraCalibration.FromString(foxglove.camera_calibration(result))
+    assert info.distortion_model == model
+    assert list(info.D) == pytest.approx(D)
+
+
 def test_refused_result_has_no_transform() -> None:
     with pytest.raises(ValueError, match="no pose"):
         foxglove.frame_transform(_result(np.eye(3), np.zeros(3), accepted=False))

@@ -306,6 +306,32 @@ def test_view_coverage_rejects_directions_a_strong_lens_folds_into_the_image() -
     assert not coverage.contains_point(E0 + 5.0, N0 - 10.0)  # behind the camera
 
 
+def test_view_coverage_of_a_wide_rational_lens_matches_the_pipeline_projection() -> None:
+    # A 114 deg lens calibrated with OpenCV's rational model: its denominator matters most at the image's
+    # edge, which is where the coverage decides (its first 5 coefficients alone would project the corner's
+    # direction over 50000 px from the image centre).
+    intrinsics = CameraIntrinsics(
+        width=1920, height=1080, fx=1000.0, fy=1000.0, cx=960.0, cy=540.0,
+        dist=(2.1, 0.6, 0.0004, -0.0003, 0.01, 2.45, 1.3, 0.08),
+    )  # fmt: skip
+    R = camera_rotation_from_view(math.pi / 2.0, math.radians(30.0))  # looking north, 30 deg down
+    t = -R @ np.array([0.0, 0.0, 10.0])
+    coverage = ViewCoverage(R, t, (E0, N0, 100.0), intrinsics, point_height_m=0.0)
+    east, north = np.meshgrid(np.linspace(-60.0, 60.0, 61), np.linspace(-5.0, 60.0, 66))
+    points = np.column_stack([east.ravel(), north.ravel(), np.zeros(east.size)])
+    pixels, depth = project_points(points, R, t, CameraModel.from_intrinsics(intrinsics))
+    inside = (
+        (depth > 0)
+        & (pixels[:, 0] >= 0)
+        & (pixels[:, 0] <= 1920)
+        & (pixels[:, 1] >= 0)
+        & (pixels[:, 1] <= 1080)
+    )
+    found = np.array([coverage.contains_point(E0 + e, N0 + n) for e, n, _ in points])
+    assert inside.sum() > 500 and (~inside).sum() > 500
+    np.testing.assert_array_equal(found, inside)
+
+
 # ---------------------------------------------------------------------------------------------- the simulator
 
 

@@ -21,6 +21,7 @@ from pipeline.camera import (
     camera_rotation_from_view,
     distort_normalized,
     model_radius_limit,
+    opencv_dist,
     project_points,
     project_points_cam,
     quaternion_wxyz_from_rotation,
@@ -38,23 +39,39 @@ angles = st.floats(-math.pi, math.pi)
 unit = st.floats(-1.0, 1.0)
 
 
+# Wide lenses fitted with OpenCV's rational model (CALIB_RATIONAL_MODEL): numerator and denominator
+# coefficients of similar size that nearly cancel, as such fits give.
+RATIONAL_WIDE = (2.1, 0.6, 0.0004, -0.0003, 0.01, 2.45, 1.3, 0.08)
+
+
 @st.composite
-def cameras(draw: st.DrawFn, distortion: bool = True) -> CameraModel:
-    """Realistic pinhole cameras with OpenCV distortion of the size real lenses show."""
+def cameras(draw: st.DrawFn, distortion: bool = True, rational: bool = False) -> CameraModel:
+    """Realistic pinhole cameras with OpenCV distortion of the size real lenses show: [k1, k2, p1, p2, k3],
+    or with `rational` the rational model's [k1, k2, p1, p2, k3, k4, k5, k6]."""
     width = draw(st.integers(320, 4096))
     height = draw(st.integers(240, 3000))
     fx = draw(st.floats(300.0, 4000.0))
-    dist = (
-        [
+    dist: tuple[float, ...] = (0.0,) * 5
+    if rational:
+        k4 = draw(st.floats(-0.3, 3.0))
+        dist = (
+            k4 + draw(st.floats(-0.5, 0.3)),  # k1: close to k4, a little barrel or pincushion
+            draw(st.floats(-0.2, 1.5)),  # k2
+            draw(st.floats(-0.005, 0.005)),  # p1
+            draw(st.floats(-0.005, 0.005)),  # p2
+            draw(st.floats(-0.05, 0.1)),  # k3
+            k4,
+            draw(st.floats(-0.2, 2.0)),  # k5
+            draw(st.floats(-0.05, 0.3)),  # k6
+        )
+    elif distortion:
+        dist = (
             draw(st.floats(-0.4, 0.4)),  # k1
             draw(st.floats(-0.2, 0.2)),  # k2
             draw(st.floats(-0.005, 0.005)),  # p1
             draw(st.floats(-0.005, 0.005)),  # p2
             draw(st.floats(-0.05, 0.05)),  # k3
-        ]
-        if distortion
-        else [0.0] * 5
-    )
+        )
     intrinsics = CameraIntrinsics(
         width=width,
         height=height,
@@ -62,9 +79,17 @@ def cameras(draw: st.DrawFn, distortion: bool = True) -> CameraModel:
         fy=fx * draw(st.floats(0.95, 1.05)),
         cx=width / 2.0 + draw(st.floats(-50.0, 50.0)),
         cy=height / 2.0 + draw(st.floats(-50.0, 50.0)),
-        dist=tuple(dist),
+        dist=dist,
     )
     return CameraModel.from_intrinsics(intrinsics)
+
+
+def rational_radial(dist: FloatArray, r: FloatArray) -> FloatArray:
+    """rho(r) of OpenCV's rational model, written out from its documentation (independent of the module);
+    `dist` of 5 or 8 values (a drawn rational lens with k4 = k5 = k6 = 0 is held as 5)."""
+    k1, k2, _, _, k3, k4, k5, k6 = np.concatenate([dist, np.zeros(8 - len(dist))])
+    r2 = r * r
+    return np.asarray(r * (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3))
 
 
 @st.composite
@@ -100,8 +125,8 @@ def is_monotonic(dist: FloatArray, max_r: float) -> bool:
 # --- projection ------------------------------------------------------------------------------------------
 
 
-@settings(max_examples=100, deadline=None)
-@given(camera=cameras(), scene=poses_and_points())
+@settings(max_examples=150, deadline=None)
+@given(camera=st.one_of(cameras(), cameras(rational=True)), scene=poses_and_points())
 def test_project_points_equals_opencv(
     camera: CameraModel, scene: tuple[FloatArray, FloatArray, FloatArray]
 ) -> None:
@@ -326,10 +351,12 @@ def test_solver_projection_holds_points_beyond_the_lens_model_on_its_rim() -> No
     r=st.floats(0.2, 8.0),
     angle=st.floats(-math.pi, math.pi),
     depth=st.floats(2.0, 50.0),
-    dist=st.sampled_from([(-0.05, 0.0, 0.001, -0.002, 0.0), (-0.30, 0.09, 0.0005, -0.0004, -0.012)]),
+    dist=st.sampled_from(
+        [(-0.05, 0.0, 0.001, -0.002, 0.0), (-0.30, 0.09, 0.0005, -0.0004, -0.012), RATIONAL_WIDE]
+    ),
 )
 def test_solver_projection_jacobian_matches_finite_differences_inside_and_beyond_the_model(
-    r: float, angle: float, depth: float, dist: tuple[float, float, float, float, float]
+    r: float, angle: float, depth: float, dist: tuple[float, ...]
 ) -> None:
     camera = CameraModel.from_intrinsics(
         CameraIntrinsics(width=1920, height=1200, fx=800.0, fy=820.0, cx=955.0, cy=610.0, dist=dist)
@@ -350,6 +377,92 @@ def test_solver_projection_jacobian_matches_finite_differences_inside_and_beyond
 def test_a_lens_that_never_turns_back_flags_no_pixel() -> None:
     camera = CameraModel(np.array([[900.0, 0, 960], [0, 900, 540], [0, 0, 1]]), np.zeros(5), 1920, 1080)
     assert not camera.beyond_model(np.array([[-1e6, -1e6], [0.0, 0.0]])).any()
+
+
+# --- the rational model and OpenCV's other vector lengths -------------------------------------------------
+
+
+@settings(max_examples=100, deadline=None)
+@given(camera=cameras(rational=True), data=st.data())
+def test_undistort_inverts_the_rational_model(camera: CameraModel, data: st.DataObject) -> None:
+    max_r = 0.8
+    xy = data.draw(arrays(np.float64, (data.draw(st.integers(1, 30)), 2), elements=st.floats(-max_r, max_r)))
+    # Directions where the model holds (beyond, one that turns back shares their pixels with others).
+    assume(np.hypot(xy[:, 0], xy[:, 1]).max() < 0.999 * camera.undistorted_limit)
+    pixels = project_points_cam(np.hstack([xy, np.ones((len(xy), 1))]), camera)
+    recovered = undistort_pixels(pixels, camera)
+    np.testing.assert_allclose(recovered, xy, rtol=0, atol=1e-10)
+
+
+@settings(max_examples=200, deadline=None)
+@given(camera=cameras(rational=True))
+def test_the_rational_model_holds_to_its_slope_floor_or_its_pole(camera: CameraModel) -> None:
+    k4, k5, k6 = np.concatenate([camera.dist, np.zeros(8 - len(camera.dist))])[5:]
+    r = np.linspace(0.0, MAX_MODEL_RADIUS, 100001)
+    r2 = r * r
+    pole = (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3) <= 0.0
+    pole[:-1] |= pole[1:]  # the scan's last point before the pole: its central difference spans it
+    slope = np.gradient(rational_radial(camera.dist, r), r)
+    below = np.flatnonzero((slope <= MIN_RADIAL_MAGNIFICATION) | pole)
+    if len(below) == 0:
+        assert math.isinf(camera.radius_limit)
+        return
+    r_end = r[below[0]]
+    assert camera.undistorted_limit == pytest.approx(r_end, abs=3e-4)
+    if not pole[below[0]]:
+        assert camera.radius_limit == pytest.approx(
+            float(rational_radial(camera.dist, np.array(r_end))), rel=1e-3
+        )
+
+
+def test_a_wide_rational_lens_undistorts_and_reprojects_to_the_image_corners() -> None:
+    # 1920 x 1080 at fx 1000: 114 deg horizontal field of view, a barrel no 5-coefficient fit holds.
+    camera = CameraModel.from_intrinsics(
+        CameraIntrinsics(
+            width=1920, height=1080, fx=1000.0, fy=1000.0, cx=960.0, cy=540.0, dist=RATIONAL_WIDE
+        )
+    )
+    assert camera.dist.shape == (8,)
+    assert not camera.beyond_model(np.array([[0.0, 0.0], [1919.0, 1079.0]])).any()
+    u, v = np.meshgrid(np.linspace(0.0, 1919.0, 41), np.linspace(0.0, 1079.0, 23))
+    pixels = np.column_stack([u.ravel(), v.ravel()])
+    xy = undistort_pixels(pixels, camera)
+    reprojected = project_points_cam(np.hstack([xy, np.ones((len(xy), 1))]), camera)
+    np.testing.assert_allclose(reprojected, pixels, rtol=0, atol=1e-8)
+    expected, _ = cv2.projectPoints(
+        np.hstack([xy, np.ones((len(xy), 1))]), np.zeros(3), np.zeros(3), camera.K, camera.dist
+    )
+    np.testing.assert_allclose(expected.reshape(-1, 2), pixels, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "values, expected",
+    [
+        ((0.1, -0.02, 0.001, 0.002), (0.1, -0.02, 0.001, 0.002, 0.0)),  # [k1, k2, p1, p2]: k3 = 0
+        ((0.1, -0.02, 0.001, 0.002, 0.01), (0.1, -0.02, 0.001, 0.002, 0.01)),
+        ((0.1, -0.02, 0.001, 0.002, 0.01, 0.0, 0.0, 0.0), (0.1, -0.02, 0.001, 0.002, 0.01)),  # not rational
+        (RATIONAL_WIDE, RATIONAL_WIDE),
+    ],
+)
+def test_opencv_dist_keeps_what_projects_alike(
+    values: tuple[float, ...], expected: tuple[float, ...]
+) -> None:
+    dist = opencv_dist(values)
+    np.testing.assert_array_equal(dist, expected)
+    # The same projection as OpenCV's of the vector given.
+    K = np.array([[900.0, 0.0, 640.0], [0.0, 900.0, 360.0], [0.0, 0.0, 1.0]])
+    points = np.array([[0.3, -0.2, 1.0], [-0.5, 0.4, 2.0], [0.0, 0.0, 3.0]])
+    ours = project_points_cam(points, CameraModel(K, np.array(values), 1280, 720))
+    theirs, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, np.array(values))
+    np.testing.assert_allclose(ours, theirs.reshape(-1, 2), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("length", [0, 3, 6, 7, 12, 14])
+def test_other_distortion_vector_lengths_are_refused_naming_dist(length: int) -> None:
+    with pytest.raises(ValueError, match="dist"):
+        opencv_dist(np.zeros(length))
+    with pytest.raises(ValueError, match=r"dist\n.*coefficients; OpenCV's pinhole model takes 4"):
+        CameraIntrinsics(width=640, height=480, fx=500.0, fy=500.0, cx=320.0, cy=240.0, dist=(0.0,) * length)
 
 
 def test_undistort_of_no_pixels() -> None:

@@ -440,6 +440,19 @@ def test_intrinsics_and_vehicle_round_trip(tmp_path: Path) -> None:
     }
 
 
+@pytest.mark.parametrize(
+    "dist",
+    [
+        [-0.21, 0.05, 0.001, -0.0005],  # Kalibr's radtan, OpenCV with k3 fixed
+        [-0.21, 0.05, 0.001, -0.0005, 0.01],  # OpenCV's default, ROS's plumb_bob
+        [2.1, 0.6, 0.0004, -0.0003, 0.01, 2.45, 1.3, 0.08],  # the rational model, ROS's rational_polynomial
+    ],
+)
+def test_intrinsics_take_opencvs_distortion_vectors_as_given(tmp_path: Path, dist: list[float]) -> None:
+    path = _write(tmp_path, "camera.yaml", _CAMERA + f"dist: {dist}\n")
+    assert load_intrinsics(path).dist == tuple(dist)
+
+
 def test_hand_written_intrinsics_default_distortion(tmp_path: Path) -> None:
     path = _write(
         tmp_path, "camera.yaml", "width: 1280\nheight: 720\nfx: 1000\nfy: 1000.5\ncx: 640\ncy: 360\n"
@@ -578,7 +591,9 @@ BAD_CAMERAS = [
     (_CAMERA.replace("fx: 1000.0", "fx: .nan"), "fx:"),
     (_CAMERA.replace("width: 1280", "width: 1280.5"), "width:"),
     (_CAMERA.replace("fy: 1000.0", "fy: -5.0"), "fy: Input should be greater than 0"),
-    (_CAMERA + "dist: [0.1, 0.2]\n", "dist"),
+    (_CAMERA + "dist: [0.1, 0.2]\n", "dist: Value error, 2 coefficients; OpenCV's pinhole model takes 4"),
+    (_CAMERA + "dist: [0.1, 0.2, 0.0, 0.0, 0.0, 0.3]\n", "dist: Value error, 6 coefficients"),
+    (_CAMERA + f"dist: {[0.0] * 14}\n", "the thin-prism and tilted models (12, 14) are not supported"),
     ("- width\n", "(root): expected a mapping of CameraIntrinsics fields, got list"),
     ("width: [\n", "(yaml): line"),
 ]

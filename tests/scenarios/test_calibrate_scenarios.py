@@ -25,13 +25,15 @@ from pipeline.camera import rotation_angle_rad
 from pipeline.metrics import Evaluation, evaluate_against_ground_truth, true_time_offset_ns
 from pipeline.tracking import frames_from_detections, track_boxes
 from pipeline.vehicle_model import ModelParams
-from sim.simulate import SimulationResult, simulate
+from sim.simulate import SimulationResult, resolve_config, simulate
 
 CREATED_AT_NS = 1_700_000_000_000_000_000  # the result's creation time: the caller's clock
 
 pytestmark = pytest.mark.slow
 
 CALIBRATION_SEED = 0
+# A wide lens's OpenCV rational-model distortion [k1, k2, p1, p2, k3, k4, k5, k6] (as in test_camera.py)
+RATIONAL_WIDE = (2.1, 0.6, 0.0004, -0.0003, 0.01, 2.45, 1.3, 0.08)
 
 
 @cache
@@ -107,6 +109,29 @@ def test_wide_distorted_lens_is_accepted() -> None:
     _assert_accepted(outcome)
     assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.3
     assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg < 0.2
+
+
+def test_a_wide_lens_described_by_the_rational_model_is_calibrated() -> None:
+    # sil-south's far camera with a 114 deg lens (fx 1000 on 1920 x 1080) whose calibration is OpenCV's
+    # rational model: the simulator images through cv2 with all eight coefficients, the pipeline projects
+    # with its own numpy (measured 0.05 m / 0.05 deg). Described by its first five coefficients only (the
+    # denominator dropped: what a 5-value camera file would say of this lens), the same boxes give no
+    # pose at all.
+    base = resolve_config("sil-south")
+    camera = replace(base.cameras[0], width=1920, height=1080, fx=1000.0, dist=RATIONAL_WIDE)
+    sim = simulate(replace(base, name="sil-south-rational", cameras=(camera,)), 0, ideal=True)
+    inputs = calibration_inputs(sim, camera.camera_id)
+    assert inputs.intrinsics.dist == RATIONAL_WIDE
+    outcome = calibrate(inputs, PipelineParams(), np.random.default_rng(0), created_at_ns=CREATED_AT_NS)
+    _assert_accepted(outcome)
+    assert outcome.result.intrinsics.dist == RATIONAL_WIDE
+    evaluation = evaluate_against_ground_truth(outcome.result, sim.ground_truth[camera.camera_id])
+    assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.15
+    assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg < 0.15
+    truncated = replace(inputs, intrinsics=inputs.intrinsics.model_copy(update={"dist": RATIONAL_WIDE[:5]}))
+    refused = calibrate(truncated, PipelineParams(), np.random.default_rng(0), created_at_ns=CREATED_AT_NS)
+    assert refused.result.verdict.status == "refused"
+    assert refused.result.verdict.reasons[0].startswith("no two hypotheses agree"), refused.result.verdict
 
 
 def test_no_target_is_refused_with_a_reason() -> None:
