@@ -433,7 +433,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrate one camera from a recording (--mcap) or the reference toolbox's YAML pair "
         "(--detections + --poses). Exit 0 accepted, 3 refused (reasons printed), 2 bad input.",
     )
-    cal.add_argument("--camera", required=True, help="camera.yaml: intrinsics (px) and distortion")
+    cal.add_argument(
+        "--camera",
+        required=True,
+        help="camera.yaml: intrinsics (px) and distortion; or a ROS camera_info calibration file (ost.yaml) "
+        "or OpenCV FileStorage YAML with camera_matrix and distortion_coefficients",
+    )
     cal.add_argument("--vehicle", required=True, help="vehicle.yaml: the calibration vehicle's box and IMU")
     source = cal.add_mutually_exclusive_group(required=True)
     source.add_argument("--mcap", help="rsucal MCAP recording: detections and V2X positions")

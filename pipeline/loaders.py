@@ -85,6 +85,19 @@ class _StrictYamlLoader(_YamlLoaderBase):
         return mapping
 
 
+class _OpenCvYamlLoader(_StrictYamlLoader):
+    """_StrictYamlLoader that also reads OpenCV FileStorage's `!!opencv-matrix` nodes, as mappings (rows,
+    cols, dt, data)."""
+
+
+_OpenCvYamlLoader.add_constructor(
+    "tag:yaml.org,2002:opencv-matrix",
+    lambda loader, node: loader.construct_mapping(node, deep=True),  # type: ignore[arg-type]
+)
+# OpenCV writes the directive as `%YAML:1.0` (older) or `%YAML 1.2`; PyYAML reads neither.
+_OPENCV_DIRECTIVE = re.compile(rb"\A%YAML[: ]1\.[0-9][^\n]*\n")
+
+
 def _read_bytes(path: Path) -> bytes:
     try:
         size = path.stat().st_size
@@ -117,10 +130,10 @@ def _check_depth(path: Path, text: str | bytes) -> None:
             depth -= 1
 
 
-def _parse_yaml(path: Path, text: str | bytes) -> Any:
+def _parse_yaml(path: Path, text: str | bytes, loader: type[_StrictYamlLoader] = _StrictYamlLoader) -> Any:
     try:
         _check_depth(path, text)
-        return yaml.load(text, Loader=_StrictYamlLoader)
+        return yaml.load(text, Loader=loader)
     except yaml.YAMLError as err:
         raise InputError(str(path), f"(yaml): {_describe_yaml_error(err)}") from err
     except ValueError as err:  # PyYAML's int() of a scalar beyond Python's 4300-digit limit
@@ -410,7 +423,10 @@ def _check_size(path: Path, data: Any) -> None:
 
 
 def _load_model_yaml(path: Path, model: type[M]) -> M:
-    data = _parse_yaml(path, _read_bytes(path))
+    return _decode_yaml_mapping(path, _parse_yaml(path, _read_bytes(path)), model)
+
+
+def _decode_yaml_mapping(path: Path, data: Any, model: type[M]) -> M:
     if not isinstance(data, dict):
         raise InputError(
             str(path), f"(root): expected a mapping of {model.__name__} fields, got {type(data).__name__}"
@@ -442,10 +458,125 @@ def load_daemon_config(path: Path) -> DaemonConfig:
     return config
 
 
+# Camera files other tools write: ROS camera_info calibration files (camera_calibration's ost.yaml,
+# camera_info_manager's format) and OpenCV FileStorage YAML (its calibration sample's out_camera_data.yml).
+# Both carry a 3 x 3 camera matrix and OpenCV's distortion vector; read into the same CameraIntrinsics.
+_ROS_DISTORTION_MODELS = {"plumb_bob": (4, 5), "rational_polynomial": (8,)}
+_FISHEYE_MODELS = ("equidistant", "fisheye", "kannala_brandt")
+_OTHER_TOOLS_KEYS = frozenset({"camera_matrix", "image_width", "image_height", "distortion_coefficients"})
+
+
 def load_intrinsics(path: Path) -> CameraIntrinsics:
-    """camera.yaml: exactly width, height, fx, fy, cx, cy (px) and optional dist (OpenCV's
-    [k1, k2, p1, p2], [k1, k2, p1, p2, k3] or [k1, k2, p1, p2, k3, k4, k5, k6])."""
-    return _load_model_yaml(Path(path), CameraIntrinsics)
+    """The camera's intrinsics from camera.yaml: rsucal's own keys, exactly width, height, fx, fy, cx, cy (px)
+    and optional dist (OpenCV's [k1, k2, p1, p2], [k1, k2, p1, p2, k3] or [k1, k2, p1, p2, k3, k4, k5, k6]);
+    or a ROS camera_info calibration file (image_width, image_height, camera_matrix, distortion_model
+    plumb_bob or rational_polynomial, distortion_coefficients; the rectification and projection matrices,
+    which describe rectified images, are not used); or OpenCV FileStorage YAML (image_width, image_height,
+    camera_matrix, distortion_coefficients, as OpenCV's calibration sample writes them). The intrinsics must
+    be those of the images the detector sees.
+
+    OpenCV's files are read as YAML here, not by cv2.FileStorage: its parser aborted the process (a heap
+    corruption) on one of 3000 randomly damaged files. Its XML form is refused with a pointer to YAML."""
+    path = Path(path)
+    raw = _read_bytes(path)
+    if raw.lstrip()[:5] == b"<?xml":
+        raise InputError(
+            str(path),
+            "(file): XML is not read; save the calibration as YAML (OpenCV FileStorage to a .yml file)",
+        )
+    text = _OPENCV_DIRECTIVE.sub(b"\n", raw, count=1)  # a blank line: the lines keep their numbers
+    data = _parse_yaml(path, text, _OpenCvYamlLoader)
+    if isinstance(data, dict) and not data.keys().isdisjoint(_OTHER_TOOLS_KEYS):
+        return _intrinsics_from_ros(path, data)
+    return _decode_yaml_mapping(path, data, CameraIntrinsics)
+
+
+def _intrinsics_from_ros(path: Path, data: dict[str, Any]) -> CameraIntrinsics:
+    """A ROS camera_info calibration file's mapping, or OpenCV FileStorage's (the same keys but the
+    distortion model, the matrices as opencv-matrix nodes) -> CameraIntrinsics; errors name the file's own
+    keys."""
+    _check_size(path, data)
+    model = data.get("distortion_model")
+    if model is not None and not isinstance(model, str):
+        raise InputError(str(path), f"distortion_model: expected a name, got {type(model).__name__}")
+    if model in _FISHEYE_MODELS:
+        raise InputError(
+            str(path),
+            f"distortion_model: {model!r} (a fisheye lens) is not supported; rsucal models OpenCV's pinhole "
+            "lenses: plumb_bob or rational_polynomial",
+        )
+    if model is not None and model not in _ROS_DISTORTION_MODELS:
+        raise InputError(
+            str(path), f"distortion_model: {model!r} is not one of {', '.join(_ROS_DISTORTION_MODELS)}"
+        )
+    K = _ros_matrix(path, data, "camera_matrix", (3, 3))
+    dist: tuple[float, ...] = (0.0,) * 5
+    if data.get("distortion_coefficients") is not None:
+        dist = tuple(float(v) for v in _ros_matrix(path, data, "distortion_coefficients", None).ravel())
+        if model is not None and len(dist) not in _ROS_DISTORTION_MODELS[model]:
+            raise InputError(
+                str(path),
+                f"distortion_coefficients.data: {len(dist)} values for distortion_model {model} (expected "
+                f"{' or '.join(str(n) for n in _ROS_DISTORTION_MODELS[model])})",
+            )
+    return _intrinsics_of(path, data.get("image_width"), data.get("image_height"), K, dist)
+
+
+def _ros_matrix(path: Path, data: dict[str, Any], key: str, shape: tuple[int, int] | None) -> FloatArray:
+    """A ROS calibration file's {rows, cols, data} matrix `key` as an array of its rows x cols."""
+    node = data.get(key)
+    if node is None:
+        raise InputError(str(path), f"{key}: missing")
+    if not isinstance(node, dict) or not isinstance(node.get("data"), list):
+        raise InputError(str(path), f"{key}: expected a mapping with rows, cols and a data list")
+    values = node["data"]
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        raise InputError(str(path), f"{key}.data: expected numbers")
+    rows, cols = node.get("rows"), node.get("cols")
+    if not (isinstance(rows, int) and isinstance(cols, int) and rows * cols == len(values)):
+        raise InputError(
+            str(path), f"{key}: rows x cols = {rows} x {cols} does not match {len(values)} values"
+        )
+    if shape is not None and (rows, cols) != shape:
+        raise InputError(str(path), f"{key}: {rows} x {cols}, expected {shape[0]} x {shape[1]}")
+    return np.asarray(values, dtype=np.float64).reshape(rows, cols)
+
+
+def _intrinsics_of(
+    path: Path, width: object, height: object, K: FloatArray, dist: tuple[float, ...]
+) -> CameraIntrinsics:
+    """CameraIntrinsics from another format's image size, camera matrix and distortion vector; a problem is
+    named by that format's key (image_width, image_height, camera_matrix, distortion_coefficients)."""
+    size = []
+    for key, value in (("image_width", width), ("image_height", height)):
+        if value is None:
+            raise InputError(str(path), f"{key}: missing")
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not math.isfinite(value)
+            or value != round(value)
+        ):
+            raise InputError(str(path), f"{key}: expected a whole number of pixels, got {value!r}")
+        size.append(round(value))
+    if not np.all(np.isfinite(K)):
+        raise InputError(str(path), "camera_matrix: not finite")
+    if not (K[1, 0] == 0.0 and K[2, 0] == 0.0 and K[2, 1] == 0.0 and K[2, 2] == 1.0):
+        raise InputError(str(path), "camera_matrix: expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+    if K[0, 1] != 0.0:
+        raise InputError(str(path), f"camera_matrix: a skew of {K[0, 1]:g} px is not supported (expected 0)")
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    fields = {"width": size[0], "height": size[1], "fx": fx, "fy": fy, "cx": cx, "cy": cy, "dist": dist}
+    try:
+        return CameraIntrinsics.model_validate(fields)
+    except ValidationError as err:
+        names = {"width": "image_width", "height": "image_height", "dist": "distortion_coefficients"}
+        problems = []
+        for item in err.errors(include_url=False):
+            field = str(item["loc"][0]) if item["loc"] else "(root)"
+            where = names.get(field, f"camera_matrix ({field})")
+            problems.append(f"{where}: {item['msg']}")
+        raise InputError(str(path), "; ".join(problems)) from err
 
 
 def load_vehicle(path: Path) -> VehicleProfile:

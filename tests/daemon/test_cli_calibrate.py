@@ -16,12 +16,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from daemon import cli, offline
 from daemon.recording import write_simulation_mcap
 from pipeline.camera import rotation_angle_rad
 from pipeline.frames import UtmFrame, v2x_from_pose
-from pipeline.loaders import load_calibration_result, load_toolbox_detections, load_toolbox_poses
+from pipeline.loaders import (
+    load_calibration_result,
+    load_intrinsics,
+    load_toolbox_detections,
+    load_toolbox_poses,
+)
 from schemas.results import CalibrationResult
 from sim.files import write_simulation_files
 from sim.simulate import PRESETS, SimulationResult, simulate
@@ -212,6 +218,34 @@ def test_broken_camera_yaml_names_file_and_field(carla: Scene, tmp_path: Path) -
     args = ["calibrate", "--camera", str(camera), "--vehicle", *carla.files("vehicle.yaml")]
     run = _rsucal([*args, "--mcap", *carla.files("recording.mcap")], tmp_path / "out.json")
     _bad_input(run, str(camera), "fx")
+
+
+def test_a_ros_camera_info_file_calibrates_as_the_camera_yaml_does(
+    carla: Scene, mcap_run: Run, tmp_path: Path
+) -> None:
+    # The camera as ROS's camera_calibration saves it (ost.yaml): the same intrinsics, the same result.
+    k = load_intrinsics(carla.dir / "camera.yaml")
+    info = {
+        "image_width": k.width,
+        "image_height": k.height,
+        "camera_name": "carla",
+        "camera_matrix": {"rows": 3, "cols": 3, "data": [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0]},
+        "distortion_model": "plumb_bob",
+        "distortion_coefficients": {"rows": 1, "cols": len(k.dist), "data": list(k.dist)},
+    }
+    camera = tmp_path / "ost.yaml"
+    camera.write_text(yaml.safe_dump(info))
+    args = ["calibrate", "--camera", str(camera), "--vehicle", *carla.files("vehicle.yaml")]
+    run = _rsucal([*args, "--mcap", *carla.files("recording.mcap"), "--verbose"], tmp_path / "ros.json")
+    assert run.code == cli.EXIT_OK, run.stdout + run.stderr
+    ros, native = load_calibration_result(run.out), load_calibration_result(mcap_run.out)
+    assert ros.intrinsics == native.intrinsics
+    assert (ros.R, ros.t, ros.verdict) == (native.R, native.t, native.verdict)
+    # A fisheye calibration is refused by name: rsucal models pinhole lenses.
+    info["distortion_model"] = "equidistant"
+    camera.write_text(yaml.safe_dump(info))
+    run = _rsucal([*args, "--mcap", *carla.files("recording.mcap")], tmp_path / "fisheye.json")
+    _bad_input(run, str(camera), "distortion_model: 'equidistant' (a fisheye lens) is not supported")
 
 
 def test_nan_in_detections_yaml_names_file_stamp_and_field(carla: Scene, tmp_path: Path) -> None:

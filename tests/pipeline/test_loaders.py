@@ -9,6 +9,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import yaml
 from hypothesis import given, settings
@@ -451,6 +453,105 @@ def test_intrinsics_and_vehicle_round_trip(tmp_path: Path) -> None:
 def test_intrinsics_take_opencvs_distortion_vectors_as_given(tmp_path: Path, dist: list[float]) -> None:
     path = _write(tmp_path, "camera.yaml", _CAMERA + f"dist: {dist}\n")
     assert load_intrinsics(path).dist == tuple(dist)
+
+
+def ros_camera_info(intrinsics: CameraIntrinsics, model: str | None = None) -> dict[str, object]:
+    """The ROS camera_info calibration file (camera_calibration's ost.yaml) of `intrinsics`."""
+    k = intrinsics
+    rational = len(k.dist) == 8
+    return {
+        "image_width": k.width,
+        "image_height": k.height,
+        "camera_name": "rsu_cam",
+        "camera_matrix": {"rows": 3, "cols": 3, "data": [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0]},
+        "distortion_model": model or ("rational_polynomial" if rational else "plumb_bob"),
+        "distortion_coefficients": {"rows": 1, "cols": len(k.dist), "data": list(k.dist)},
+        "rectification_matrix": {"rows": 3, "cols": 3, "data": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]},
+        "projection_matrix": {"rows": 3, "cols": 4, "data": [k.fx * 0.98, 0.0, k.cx, 0.0, 0.0, k.fy * 0.98,
+                                                             k.cy, 0.0, 0.0, 0.0, 1.0, 0.0]},
+    }  # fmt: skip
+
+
+RATIONAL = INTRINSICS.model_copy(update={"dist": (2.1, 0.6, 0.0004, -0.0003, 0.01, 2.45, 1.3, 0.08)})
+
+
+@pytest.mark.parametrize("intrinsics", [INTRINSICS, RATIONAL])
+def test_ros_camera_info_files_give_the_same_intrinsics(tmp_path: Path, intrinsics: CameraIntrinsics) -> None:
+    path = _write(tmp_path, "ost.yaml", yaml.safe_dump(ros_camera_info(intrinsics)))
+    assert load_intrinsics(path) == intrinsics  # the projection matrix (rectified images) is not used
+
+
+@pytest.mark.parametrize("intrinsics", [INTRINSICS, RATIONAL])
+def test_opencv_storage_files_give_the_same_intrinsics(tmp_path: Path, intrinsics: CameraIntrinsics) -> None:
+    # Written by OpenCV itself, as its calibration sample writes them (read as YAML, not by OpenCV).
+    path = tmp_path / "out_camera_data.yml"
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    storage.write("calibration_time", "Fri Nov 27 2026")
+    storage.write("image_width", intrinsics.width)
+    storage.write("image_height", intrinsics.height)
+    K = np.array([[intrinsics.fx, 0.0, intrinsics.cx], [0.0, intrinsics.fy, intrinsics.cy], [0.0, 0.0, 1.0]])
+    storage.write("camera_matrix", K)
+    storage.write("distortion_coefficients", np.array(intrinsics.dist).reshape(-1, 1))
+    storage.write("avg_reprojection_error", 0.31)
+    storage.release()
+    assert load_intrinsics(path) == intrinsics
+
+
+def _ros_with(change: dict[str, object]) -> str:
+    info = ros_camera_info(INTRINSICS)
+    for key, value in change.items():
+        if value is None:
+            del info[key]
+        else:
+            info[key] = value
+    return yaml.safe_dump(info)
+
+
+_OPENCV_HEAD = "%YAML:1.0\n---\nimage_width: 1280\nimage_height: 720\n"
+_OPENCV_K = (
+    "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+    "   data: [ 1000., 0., 640., 0., 1000., 360., 0., 0., 1. ]\n"
+)
+
+
+def _matrix(data: list[object], rows: int = 3, cols: int = 3) -> dict[str, object]:
+    return {"rows": rows, "cols": cols, "data": data}
+
+
+_K = [1000.0, 0.0, 640.0, 0.0, 1000.0, 360.0, 0.0, 0.0, 1.0]
+BAD_OTHER_CAMERAS = [
+    (_ros_with({"distortion_model": "equidistant"}), "distortion_model: 'equidistant' (a fisheye lens)"),
+    (_ros_with({"distortion_model": "unified"}), "distortion_model: 'unified' is not one of plumb_bob"),
+    (_ros_with({"distortion_model": "rational_polynomial"}), "distortion_coefficients.data: 5 values"),
+    (_ros_with({"distortion_coefficients": _matrix([0.1] * 5, 1, 4)}), "rows x cols = 1 x 4"),
+    (_ros_with({"camera_matrix": _matrix([1.0] * 8)}), "camera_matrix: rows x cols"),
+    (_ros_with({"camera_matrix": _matrix(["a"] * 9)}), "camera_matrix.data: expected numbers"),
+    (_ros_with({"camera_matrix": [1.0] * 9}), "camera_matrix: expected a mapping with rows, cols and"),
+    (_ros_with({"camera_matrix": _matrix([*_K[:1], 3.0, *_K[2:]])}), "camera_matrix: a skew of 3 px"),
+    (_ros_with({"camera_matrix": _matrix([-1000.0, *_K[1:]])}), "camera_matrix (fx): Input should be"),
+    (_ros_with({"image_width": None}), "image_width: missing"),
+    (_ros_with({"image_height": 720.5}), "image_height: expected a whole number of pixels, got 720.5"),
+    (
+        _ros_with({"distortion_coefficients": _matrix([0.0] * 6, 1, 6)}),
+        "distortion_coefficients.data: 6 values for distortion_model plumb_bob (expected 4 or 5)",
+    ),
+    (_OPENCV_HEAD, "camera_matrix: missing"),
+    (_OPENCV_HEAD + _OPENCV_K.replace("rows: 3", "rows: 1").replace("cols: 3", "cols: 9"), "1 x 9, expected"),
+    (_OPENCV_HEAD + "camera_matrix: [1\n", "(yaml): line 6, column 1: did not find expected ',' or ']'"),
+    ('<?xml version="1.0"?>\n<opencv_storage>\n', "(file): XML is not read; save the calibration as YAML"),
+    ("%YAML:1.0\n" + _OPENCV_K, "image_width: missing"),
+]
+
+
+@pytest.mark.parametrize(("text", "expected"), BAD_OTHER_CAMERAS)
+def test_bad_camera_files_of_other_tools_name_their_own_keys(
+    tmp_path: Path, text: str, expected: str
+) -> None:
+    path = _write(tmp_path, "camera.yaml", text)
+    with pytest.raises(InputError) as info:
+        load_intrinsics(path)
+    assert info.value.source == str(path)
+    assert expected in info.value.detail, info.value.detail
 
 
 def test_hand_written_intrinsics_default_distortion(tmp_path: Path) -> None:
