@@ -532,10 +532,12 @@ def _ros_matrix(path: Path, data: dict[str, Any], key: str, shape: tuple[int, in
     values = node["data"]
     if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
         raise InputError(str(path), f"{key}.data: expected numbers")
+    if not all(abs(v) < 1e300 for v in values):  # finite (an integer of 400 digits has no float)
+        raise InputError(str(path), f"{key}.data: expected finite numbers")
     rows, cols = node.get("rows"), node.get("cols")
-    if not (isinstance(rows, int) and isinstance(cols, int) and rows * cols == len(values)):
+    if not (type(rows) is int and type(cols) is int and rows > 0 and cols > 0 and rows * cols == len(values)):
         raise InputError(
-            str(path), f"{key}: rows x cols = {rows} x {cols} does not match {len(values)} values"
+            str(path), f"{key}: rows x cols = {rows!r} x {cols!r} does not match {len(values)} values"
         )
     if shape is not None and (rows, cols) != shape:
         raise InputError(str(path), f"{key}: {rows} x {cols}, expected {shape[0]} x {shape[1]}")
@@ -551,14 +553,10 @@ def _intrinsics_of(
     for key, value in (("image_width", width), ("image_height", height)):
         if value is None:
             raise InputError(str(path), f"{key}: missing")
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, int | float)
-            or not math.isfinite(value)
-            or value != round(value)
-        ):
+        whole = isinstance(value, int) or (isinstance(value, float) and value.is_integer())
+        if isinstance(value, bool) or not whole:
             raise InputError(str(path), f"{key}: expected a whole number of pixels, got {value!r}")
-        size.append(round(value))
+        size.append(int(value))  # type: ignore[call-overload]  # an int, or a float with no fraction
     if not np.all(np.isfinite(K)):
         raise InputError(str(path), "camera_matrix: not finite")
     if not (K[1, 0] == 0.0 and K[2, 0] == 0.0 and K[2, 1] == 0.0 and K[2, 2] == 1.0):

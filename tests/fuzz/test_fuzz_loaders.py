@@ -39,6 +39,36 @@ CAMERA_YAML = (
     "width: 1920\nheight: 1080\nfx: 960.0\nfy: 960.0\ncx: 960.0\ncy: 540.0\n"
     + "dist: [-0.1, 0.01, 0, 0, 0]\n"
 )
+# The same camera as ROS's camera_calibration saves it, and as OpenCV's calibration sample writes it.
+ROS_CAMERA_YAML = """image_width: 1920
+image_height: 1080
+camera_name: rsu_cam
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [960.0, 0.0, 960.0, 0.0, 960.0, 540.0, 0.0, 0.0, 1.0]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [-0.1, 0.01, 0.0, 0.0, 0.0]
+"""
+OPENCV_CAMERA_YAML = """%YAML:1.0
+---
+image_width: 1920
+image_height: 1080
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 960., 0., 960., 0., 960., 540., 0., 0., 1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 5
+   cols: 1
+   dt: d
+   data: [ -0.1, 0.01, 0., 0., 0. ]
+avg_reprojection_error: 0.31
+"""
 VEHICLE_YAML = "length: 4.8\nwidth: 1.85\nheight: 1.5\nimu_offset: [1.3, 0.925, 0.35]\n"
 DETECTIONS_YAML = format_toolbox_detections(
     DetectionFrame(
@@ -88,7 +118,10 @@ def load_or_reject(loader: Callable[[Path], Any], data: bytes, name: str) -> Any
 
 
 def test_the_good_files_load() -> None:
-    assert load_or_reject(load_intrinsics, CAMERA_YAML.encode(), "camera.yaml") is not None
+    camera = load_or_reject(load_intrinsics, CAMERA_YAML.encode(), "camera.yaml")
+    assert camera is not None
+    assert load_or_reject(load_intrinsics, ROS_CAMERA_YAML.encode(), "ost.yaml") == camera
+    assert load_or_reject(load_intrinsics, OPENCV_CAMERA_YAML.encode(), "out_camera_data.yml") == camera
     assert load_or_reject(load_vehicle, VEHICLE_YAML.encode(), "vehicle.yaml") is not None
     assert load_or_reject(load_daemon_config, CONFIG_YAML.encode(), "rsu.yaml") is not None
     assert len(load_or_reject(load_toolbox_detections, DETECTIONS_YAML.encode(), "detections.yaml")) == 6
@@ -99,6 +132,23 @@ def test_the_good_files_load() -> None:
 @given(data=document_inputs(CAMERA_YAML, yaml.safe_load))
 def test_camera_yaml(data: bytes) -> None:
     load_or_reject(load_intrinsics, data, "camera.yaml")
+
+
+@fuzz_settings(slow_data=True)
+@given(data=document_inputs(ROS_CAMERA_YAML, yaml.safe_load))
+def test_ros_camera_info_yaml(data: bytes) -> None:
+    load_or_reject(load_intrinsics, data, "ost.yaml")
+
+
+def _opencv_yaml(text: str) -> Any:
+    """OpenCV FileStorage YAML as data: without its directive, the matrices as plain mappings."""
+    return yaml.safe_load(text.replace("%YAML:1.0\n", "").replace("!!opencv-matrix", ""))
+
+
+@fuzz_settings(slow_data=True)
+@given(data=document_inputs(OPENCV_CAMERA_YAML, _opencv_yaml))
+def test_opencv_storage_yaml(data: bytes) -> None:
+    load_or_reject(load_intrinsics, data, "out_camera_data.yml")
 
 
 @fuzz_settings(slow_data=True)
