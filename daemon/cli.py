@@ -437,7 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--camera",
         required=True,
         help="camera.yaml: intrinsics (px) and distortion; or a ROS camera_info calibration file (ost.yaml) "
-        "or OpenCV FileStorage YAML with camera_matrix and distortion_coefficients",
+        "or OpenCV FileStorage (YAML or XML) with camera_matrix and distortion_coefficients",
     )
     cal.add_argument("--vehicle", required=True, help="vehicle.yaml: the calibration vehicle's box and IMU")
     source = cal.add_mutually_exclusive_group(required=True)

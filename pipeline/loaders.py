@@ -459,7 +459,7 @@ def load_daemon_config(path: Path) -> DaemonConfig:
 
 
 # Camera files other tools write: ROS camera_info calibration files (camera_calibration's ost.yaml,
-# camera_info_manager's format) and OpenCV FileStorage YAML (its calibration sample's out_camera_data.yml).
+# camera_info_manager's format) and OpenCV FileStorage (its calibration sample's out_camera_data.yml/xml).
 # Both carry a 3 x 3 camera matrix and OpenCV's distortion vector; read into the same CameraIntrinsics.
 _ROS_DISTORTION_MODELS = {"plumb_bob": (4, 5), "rational_polynomial": (8,)}
 _FISHEYE_MODELS = ("equidistant", "fisheye", "kannala_brandt")
@@ -471,24 +471,65 @@ def load_intrinsics(path: Path) -> CameraIntrinsics:
     and optional dist (OpenCV's [k1, k2, p1, p2], [k1, k2, p1, p2, k3] or [k1, k2, p1, p2, k3, k4, k5, k6]);
     or a ROS camera_info calibration file (image_width, image_height, camera_matrix, distortion_model
     plumb_bob or rational_polynomial, distortion_coefficients; the rectification and projection matrices,
-    which describe rectified images, are not used); or OpenCV FileStorage YAML (image_width, image_height,
-    camera_matrix, distortion_coefficients, as OpenCV's calibration sample writes them). The intrinsics must
-    be those of the images the detector sees.
+    which describe rectified images, are not used); or OpenCV FileStorage YAML or XML (image_width,
+    image_height, camera_matrix, distortion_coefficients, as OpenCV's calibration sample and tutorial write
+    them). The intrinsics must be those of the images the detector sees.
 
-    OpenCV's files are read as YAML here, not by cv2.FileStorage: its parser aborted the process (a heap
-    corruption) on one of 3000 randomly damaged files. Its XML form is refused with a pointer to YAML."""
+    OpenCV's files are read here, not by cv2.FileStorage: its parser aborted the process (a heap
+    corruption) on one of 3000 randomly damaged files."""
     path = Path(path)
     raw = _read_bytes(path)
     if raw.lstrip()[:5] == b"<?xml":
-        raise InputError(
-            str(path),
-            "(file): XML is not read; save the calibration as YAML (OpenCV FileStorage to a .yml file)",
-        )
+        return _intrinsics_from_ros(path, _opencv_xml(path, raw))
     text = _OPENCV_DIRECTIVE.sub(b"\n", raw, count=1)  # a blank line: the lines keep their numbers
     data = _parse_yaml(path, text, _OpenCvYamlLoader)
     if isinstance(data, dict) and not data.keys().isdisjoint(_OTHER_TOOLS_KEYS):
         return _intrinsics_from_ros(path, data)
     return _decode_yaml_mapping(path, data, CameraIntrinsics)
+
+
+def _opencv_xml(path: Path, raw: bytes) -> dict[str, Any]:
+    """OpenCV FileStorage XML (<opencv_storage>, as OpenCV's calibration tutorial writes out_camera_data.xml)
+    as the mapping its YAML form gives: image_width, image_height, and camera_matrix and
+    distortion_coefficients as {rows, cols, dt, data}. Only those keys are read."""
+    from xml.etree import ElementTree
+
+    try:
+        root = ElementTree.fromstring(raw)  # expat: no external entities, entity expansion bounded
+    except ElementTree.ParseError as err:
+        line, column = err.position
+        problem = re.sub(r": line \d+, column \d+$", "", str(err))
+        raise InputError(str(path), f"(xml): line {line}, column {column + 1}: {problem}") from err
+    if root.tag != "opencv_storage":
+        raise InputError(str(path), f"(xml): the root is <{root.tag}>, not <opencv_storage>")
+
+    def number(text: str | None, key: str) -> int | float:
+        try:
+            value = float(text or "")
+        except ValueError:
+            raise InputError(
+                str(path), f"{key}: expected a number, got {(text or '').strip()[:40]!r}"
+            ) from None
+        return int(value) if value.is_integer() and abs(value) < 2**53 else value
+
+    data: dict[str, Any] = {}
+    for key in ("image_width", "image_height"):
+        node = root.find(key)
+        if node is not None:
+            data[key] = number(node.text, key)
+    for key in ("camera_matrix", "distortion_coefficients"):
+        node = root.find(key)
+        if node is None:
+            continue
+        rows, cols, values = node.find("rows"), node.find("cols"), node.find("data")
+        if rows is None or cols is None or values is None:
+            raise InputError(str(path), f"{key}: expected an opencv-matrix with rows, cols and data")
+        data[key] = {
+            "rows": number(rows.text, f"{key}.rows"),
+            "cols": number(cols.text, f"{key}.cols"),
+            "data": [number(v, f"{key}.data") for v in (values.text or "").split()],
+        }
+    return data
 
 
 def _intrinsics_from_ros(path: Path, data: dict[str, Any]) -> CameraIntrinsics:

@@ -17,8 +17,9 @@ from typing import Any
 
 import pytest
 import yaml
-from fuzzing import document_inputs, fuzz_settings, label, scratch_dir
+from fuzzing import document_inputs, fuzz_settings, label, mutated_bytes, mutated_lines, scratch_dir
 from hypothesis import given
+from hypothesis import strategies as st
 
 from daemon.ingest import Counters, Decoder, RejectLog
 from pipeline.errors import InputError
@@ -68,6 +69,24 @@ distortion_coefficients: !!opencv-matrix
    dt: d
    data: [ -0.1, 0.01, 0., 0., 0. ]
 avg_reprojection_error: 0.31
+"""
+OPENCV_CAMERA_XML = """<?xml version="1.0"?>
+<opencv_storage>
+<image_width>1920</image_width>
+<image_height>1080</image_height>
+<camera_matrix type_id="opencv-matrix">
+  <rows>3</rows>
+  <cols>3</cols>
+  <dt>d</dt>
+  <data>
+    960. 0. 960. 0. 960. 540. 0. 0. 1.</data></camera_matrix>
+<distortion_coefficients type_id="opencv-matrix">
+  <rows>5</rows>
+  <cols>1</cols>
+  <dt>d</dt>
+  <data>
+    -0.1 0.01 0. 0. 0.</data></distortion_coefficients>
+</opencv_storage>
 """
 VEHICLE_YAML = "length: 4.8\nwidth: 1.85\nheight: 1.5\nimu_offset: [1.3, 0.925, 0.35]\n"
 DETECTIONS_YAML = format_toolbox_detections(
@@ -122,6 +141,7 @@ def test_the_good_files_load() -> None:
     assert camera is not None
     assert load_or_reject(load_intrinsics, ROS_CAMERA_YAML.encode(), "ost.yaml") == camera
     assert load_or_reject(load_intrinsics, OPENCV_CAMERA_YAML.encode(), "out_camera_data.yml") == camera
+    assert load_or_reject(load_intrinsics, OPENCV_CAMERA_XML.encode(), "out_camera_data.xml") == camera
     assert load_or_reject(load_vehicle, VEHICLE_YAML.encode(), "vehicle.yaml") is not None
     assert load_or_reject(load_daemon_config, CONFIG_YAML.encode(), "rsu.yaml") is not None
     assert len(load_or_reject(load_toolbox_detections, DETECTIONS_YAML.encode(), "detections.yaml")) == 6
@@ -149,6 +169,18 @@ def _opencv_yaml(text: str) -> Any:
 @given(data=document_inputs(OPENCV_CAMERA_YAML, _opencv_yaml))
 def test_opencv_storage_yaml(data: bytes) -> None:
     load_or_reject(load_intrinsics, data, "out_camera_data.yml")
+
+
+@fuzz_settings(slow_data=True)
+@given(
+    data=st.one_of(
+        st.binary(max_size=300).map(lambda b: b'<?xml version="1.0"?>\n' + b),
+        mutated_bytes(OPENCV_CAMERA_XML.encode()),
+        mutated_lines(OPENCV_CAMERA_XML).map(lambda text: text.encode("utf-8")),
+    )
+)
+def test_opencv_storage_xml(data: bytes) -> None:
+    load_or_reject(load_intrinsics, data, "out_camera_data.xml")
 
 
 @fuzz_settings(slow_data=True)

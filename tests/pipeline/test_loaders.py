@@ -481,10 +481,14 @@ def test_ros_camera_info_files_give_the_same_intrinsics(tmp_path: Path, intrinsi
     assert load_intrinsics(path) == intrinsics  # the projection matrix (rectified images) is not used
 
 
+@pytest.mark.parametrize("suffix", ["yml", "xml"])
 @pytest.mark.parametrize("intrinsics", [INTRINSICS, RATIONAL])
-def test_opencv_storage_files_give_the_same_intrinsics(tmp_path: Path, intrinsics: CameraIntrinsics) -> None:
-    # Written by OpenCV itself, as its calibration sample writes them (read as YAML, not by OpenCV).
-    path = tmp_path / "out_camera_data.yml"
+def test_opencv_storage_files_give_the_same_intrinsics(
+    tmp_path: Path, intrinsics: CameraIntrinsics, suffix: str
+) -> None:
+    # Written by OpenCV itself, as its calibration sample and tutorial write them (read by rsucal, not by
+    # OpenCV's parser).
+    path = tmp_path / f"out_camera_data.{suffix}"
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     storage.write("calibration_time", "Fri Nov 27 2026")
     storage.write("image_width", intrinsics.width)
@@ -508,6 +512,18 @@ def _ros_with(change: dict[str, object]) -> str:
 
 
 _OPENCV_HEAD = "%YAML:1.0\n---\nimage_width: 1280\nimage_height: 720\n"
+_XML = """<?xml version="1.0"?>
+<opencv_storage>
+<image_width>1280</image_width>
+<image_height>720</image_height>
+<camera_matrix type_id="opencv-matrix">
+  <rows>3</rows>
+  <cols>3</cols>
+  <dt>d</dt>
+  <data>
+    1000. 0. 640. 0. 1000. 360. 0. 0. 1.</data></camera_matrix>
+</opencv_storage>
+"""
 _OPENCV_K = (
     "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
     "   data: [ 1000., 0., 640., 0., 1000., 360., 0., 0., 1. ]\n"
@@ -538,7 +554,16 @@ BAD_OTHER_CAMERAS = [
     (_OPENCV_HEAD, "camera_matrix: missing"),
     (_OPENCV_HEAD + _OPENCV_K.replace("rows: 3", "rows: 1").replace("cols: 3", "cols: 9"), "1 x 9, expected"),
     (_OPENCV_HEAD + "camera_matrix: [1\n", "(yaml): line 6, column 1: did not find expected ',' or ']'"),
-    ('<?xml version="1.0"?>\n<opencv_storage>\n', "(file): XML is not read; save the calibration as YAML"),
+    ('<?xml version="1.0"?>\n<opencv_storage>\n', "(xml): line 3, column 1: no element found"),
+    ('<?xml version="1.0"?>\n<calibration/>\n', "(xml): the root is <calibration>, not <opencv_storage>"),
+    (
+        _XML.replace("<rows>3</rows>", "<rows>three</rows>"),
+        "camera_matrix.rows: expected a number, got 'three'",
+    ),
+    (_XML.replace("<cols>3</cols>", ""), "camera_matrix: expected an opencv-matrix with rows, cols and data"),
+    (_XML.replace(" 0. 0. 1.</data>", " 0. 0. x</data>"), "camera_matrix.data: expected a number, got 'x'"),
+    (_XML.replace("1280", "1280.5"), "image_width: expected a whole number of pixels, got 1280.5"),
+    (_XML.replace("<image_height>720</image_height>", ""), "image_height: missing"),
     ("%YAML:1.0\n" + _OPENCV_K, "image_width: missing"),
 ]
 
