@@ -448,8 +448,20 @@ def _load_model_json(path: Path, model: type[M]) -> M:
 
 
 def load_daemon_config(path: Path) -> DaemonConfig:
-    """rsu.yaml of `rsucal daemon`; relative paths in it (state_dir, zenoh.config_file) stay as written."""
-    config = _load_model_yaml(Path(path), DaemonConfig)
+    """rsu.yaml of `rsucal daemon`; relative paths in it (state_dir, zenoh.config_file) stay as written,
+    except a camera's `intrinsics` given as a file name (any camera file load_intrinsics reads: camera.yaml,
+    a ROS camera_info file, OpenCV FileStorage), read here, relative to rsu.yaml's directory."""
+    path = Path(path)
+    data = _parse_yaml(path, _read_bytes(path))
+    cameras = data.get("cameras") if isinstance(data, dict) else None
+    for index, camera in enumerate(cameras if isinstance(cameras, list) else []):
+        if isinstance(camera, dict) and isinstance(camera.get("intrinsics"), str):
+            camera_file = path.parent / camera["intrinsics"]
+            try:
+                camera["intrinsics"] = load_intrinsics(camera_file).model_dump(mode="json")
+            except InputError as err:
+                raise InputError(str(path), f"cameras.{index}.intrinsics: {err}") from err
+    config = _decode_yaml_mapping(path, data, DaemonConfig)
     if config.crs is not None:
         try:
             UtmFrame(config.crs)  # the schema checks the form only; the daemon needs a UTM zone

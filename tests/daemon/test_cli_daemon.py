@@ -86,3 +86,51 @@ def test_relative_paths_are_relative_to_the_config_file(tmp_path: Path) -> None:
     detector = config.camera("west-arm").detector
     assert detector is not None and detector.model == tmp_path / "etc" / "models" / "vehicles.onnx"
     assert config.camera("west-junction").detector is None
+
+
+def test_a_cameras_intrinsics_may_be_its_calibration_file(tmp_path: Path) -> None:
+    # An operator's ROS camera_info file beside rsu.yaml, named instead of the values written out.
+    from pipeline.loaders import load_daemon_config
+
+    data = yaml.safe_load(EXAMPLE.read_text())
+    k = data["cameras"][0]["intrinsics"]
+    info = {
+        "image_width": k["width"],
+        "image_height": k["height"],
+        "camera_matrix": {
+            "rows": 3,
+            "cols": 3,
+            "data": [k["fx"], 0.0, k["cx"], 0.0, k["fy"], k["cy"], 0, 0, 1],
+        },
+        "distortion_model": "plumb_bob",
+        "distortion_coefficients": {"rows": 1, "cols": 5, "data": list(k.get("dist", [0.0] * 5))},
+    }
+    path = tmp_path / "etc" / "rsu.yaml"
+    (tmp_path / "etc" / "cameras").mkdir(parents=True)
+    (tmp_path / "etc" / "cameras" / "ost.yaml").write_text(yaml.safe_dump(info))
+    inline = yaml.safe_dump(data)
+    data["cameras"][0]["intrinsics"] = "cameras/ost.yaml"  # relative to rsu.yaml
+    path.write_text(yaml.safe_dump(data))
+    (tmp_path / "inline.yaml").write_text(inline)
+    assert load_daemon_config(path) == load_daemon_config(tmp_path / "inline.yaml")
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (None, "cameras.0.intrinsics: "),  # no such file
+        ("image_width: 1920\n", "cameras.0.intrinsics: "),
+    ],
+)
+def test_a_bad_intrinsics_file_exits_2_naming_the_camera_and_the_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str | None, expected: str
+) -> None:
+    camera_file = tmp_path / "ost.yaml"
+    if text is not None:
+        camera_file.write_text(text)
+    data = _example(tmp_path)
+    data["cameras"][0]["intrinsics"] = "ost.yaml"  # type: ignore[index]
+    code, err = _run(tmp_path, data, capsys)
+    assert code == 2
+    assert expected + str(camera_file) in err, err
+    assert not (tmp_path / "state").exists()
