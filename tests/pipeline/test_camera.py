@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import cv2
 import numpy as np
@@ -433,6 +434,18 @@ def test_a_wide_rational_lens_undistorts_and_reprojects_to_the_image_corners() -
         np.hstack([xy, np.ones((len(xy), 1))]), np.zeros(3), np.zeros(3), camera.K, camera.dist
     )
     np.testing.assert_allclose(expected.reshape(-1, 2), pixels, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("dist", [RATIONAL_WIDE, (-0.30, 0.09, 0.0005, -0.0004, -0.012)])
+def test_points_far_beyond_the_lens_model_have_no_pixel_and_raise_no_warning(dist: tuple[float, ...]) -> None:
+    # A junk pose in the hypotheses put points 1e40 off axis: the polynomials overflowed (RuntimeWarning on
+    # the user's terminal) before those pixels were set to NaN.
+    camera = CameraModel(np.array([[1000.0, 0, 960], [0, 1000, 540], [0, 0, 1]]), np.array(dist), 1920, 1080)
+    points = np.array([[1e40, 3e39, 1.0], [0.3, -0.2, 1.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pixels = project_points_cam(points, camera)
+    assert np.isnan(pixels[0]).all() and np.isfinite(pixels[1]).all()
 
 
 @pytest.mark.parametrize(
