@@ -243,13 +243,13 @@ def project_points_cam(points_cam: Points3, camera: CameraModel) -> Pixels:
     """
     check_shape(points_cam, "N,3", name="points_cam")
     undistorted = points_cam[:, :2] / points_cam[:, 2:3]
+    K = camera.K
     # Far off axis the lens polynomials overflow; those points get NaN below (beyond the model) or inf.
     with np.errstate(over="ignore", invalid="ignore"):
         xy = distort_normalized(undistorted, camera.dist) if camera.has_distortion else undistorted
-    K = camera.K
-    pixels = np.stack(
-        [K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1
-    )
+        pixels = np.stack(
+            [K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], axis=1
+        )
     limit = camera.undistorted_limit
     if not math.isinf(limit):
         with np.errstate(invalid="ignore"):
