@@ -51,7 +51,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from pipeline.arrays import BoolArray, FloatArray, check_shape
-from pipeline.camera import CameraModel, camera_centre, project_points_cam, undistort_pixels
+from pipeline.camera import CameraModel, camera_centre, opencv_dist, project_points_cam, undistort_pixels
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame
 from schemas.common import CameraIntrinsics
@@ -225,8 +225,8 @@ class ViewCoverage:
         else:
             self._ground = (float(point_height_m), 0.0, 0.0)
         self._intr = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
-        # [k1, k2, p1, p2, k3, k4, k5, k6]: OpenCV's 4 or 5 coefficients padded (the rational terms 0).
-        dist = [float(v) for v in intrinsics.dist]
+        # [k1, k2, p1, p2, k3, k4, k5, k6], the rational terms 0 where the lens has none.
+        dist = [float(v) for v in opencv_dist(intrinsics.dist)]
         self._dist = (*dist, *[0.0] * (8 - len(dist)))
         self._has_dist = any(v != 0.0 for v in self._dist)
         u_lo, v_lo = -margin_px, -margin_px

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from pipeline.arrays import FloatArray, Mask, Pixels, Points3, Rotation, Vec3, check_shape
-from schemas.common import CameraIntrinsics
+from schemas.common import DIST_LENGTHS, CameraIntrinsics
 
 # How far out the lens model is used: to the distorted radius where its radial magnification (d rho / d r,
 # distorted over undistorted normalised radius, 1 at the centre) has fallen to this. A fitted polynomial
@@ -80,7 +80,7 @@ def opencv_dist(values: object) -> FloatArray:
     values as the pipeline holds it: (5,), or (8,) when the rational terms are not all 0. The two give the
     same projection where they are (the rational model's denominator is then exactly 1)."""
     dist = np.asarray(values, dtype=np.float64).reshape(-1)
-    if len(dist) not in (4, 5, 8):
+    if len(dist) not in DIST_LENGTHS:
         raise ValueError(f"dist: {len(dist)} coefficients, expected 4, 5 or 8 (OpenCV's pinhole models)")
     if len(dist) == 8 and np.any(dist[5:] != 0.0):
         return dist.copy()
@@ -139,7 +139,7 @@ def model_radius_limits(dist: FloatArray) -> tuple[float, float]:
             a = mid
     if not _denominator(np.array([b * b]), lens)[0] > 0.0:
         b = a  # the rational model's pole: b has no finite image, a is just inside
-    return b, b * float(_radial_terms(np.array([b * b]), lens)[0][0])
+    return b, b * float(_radial(np.array([b * b]), lens)[0])
 
 
 def _denominator(r2: FloatArray, dist: FloatArray) -> FloatArray:
@@ -147,6 +147,13 @@ def _denominator(r2: FloatArray, dist: FloatArray) -> FloatArray:
     if len(dist) < 8:
         return np.ones_like(r2)
     return np.asarray(1.0 + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7])), dtype=np.float64)
+
+
+def _radial(r2: FloatArray, dist: FloatArray) -> FloatArray:
+    """The radial factor at squared undistorted radii r2 for a (5,) or (8,) `opencv_dist` vector."""
+    k1, k2, k3 = dist[0], dist[1], dist[4]
+    radial: FloatArray = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return radial if len(dist) < 8 else radial / _denominator(r2, dist)
 
 
 def _radial_terms(r2: FloatArray, dist: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -226,11 +233,9 @@ def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
 def distort_xy(x: FloatArray, y: FloatArray, dist: FloatArray) -> tuple[FloatArray, FloatArray]:
     """`distort_normalized` on the normalised coordinates as two arrays x, y (same shape) -> (xd, yd), for
     callers that use the columns apart (the straight-track solver's inner loop). `dist` (5,) or (8,)."""
-    k1, k2, p1, p2, k3 = dist[:5]
+    p1, p2 = dist[2], dist[3]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    if len(dist) > 5:
-        radial = radial / (1.0 + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7])))
+    radial = _radial(r2, dist)
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return xd, yd
@@ -351,7 +356,7 @@ def _radial_start(xy_distorted: FloatArray, dist: FloatArray, limit: float) -> F
     low, high = np.zeros(len(rho)), np.full(len(rho), limit)
     for _ in range(60):
         mid = 0.5 * (low + high)
-        inside = mid * _radial_terms(mid * mid, dist)[0] < rho
+        inside = mid * _radial(mid * mid, dist) < rho
         low, high = np.where(inside, mid, low), np.where(inside, high, mid)
     scale = np.where(rho > 0.0, low / np.where(rho > 0.0, rho, 1.0), 1.0)
     return np.asarray(xy_distorted * scale[:, None], dtype=np.float64)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import ros_camera_info
 
 from daemon import cli, offline
 from daemon.recording import write_simulation_mcap
@@ -225,14 +226,7 @@ def test_a_ros_camera_info_file_calibrates_as_the_camera_yaml_does(
 ) -> None:
     # The camera as ROS's camera_calibration saves it (ost.yaml): the same intrinsics, the same result.
     k = load_intrinsics(carla.dir / "camera.yaml")
-    info = {
-        "image_width": k.width,
-        "image_height": k.height,
-        "camera_name": "carla",
-        "camera_matrix": {"rows": 3, "cols": 3, "data": [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0]},
-        "distortion_model": "plumb_bob",
-        "distortion_coefficients": {"rows": 1, "cols": len(k.dist), "data": list(k.dist)},
-    }
+    info = ros_camera_info(k)
     camera = tmp_path / "ost.yaml"
     camera.write_text(yaml.safe_dump(info))
     args = ["calibrate", "--camera", str(camera), "--vehicle", *carla.files("vehicle.yaml")]

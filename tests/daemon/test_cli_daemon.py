@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import free_port
+from helpers import free_port, ros_camera_info
 
 from daemon.cli import main
+from schemas.common import CameraIntrinsics
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "deploy" / "rsu.example.yaml"
 
@@ -94,17 +95,7 @@ def test_a_cameras_intrinsics_may_be_its_calibration_file(tmp_path: Path) -> Non
 
     data = yaml.safe_load(EXAMPLE.read_text())
     k = data["cameras"][0]["intrinsics"]
-    info = {
-        "image_width": k["width"],
-        "image_height": k["height"],
-        "camera_matrix": {
-            "rows": 3,
-            "cols": 3,
-            "data": [k["fx"], 0.0, k["cx"], 0.0, k["fy"], k["cy"], 0, 0, 1],
-        },
-        "distortion_model": "plumb_bob",
-        "distortion_coefficients": {"rows": 1, "cols": 5, "data": list(k.get("dist", [0.0] * 5))},
-    }
+    info = ros_camera_info(CameraIntrinsics.model_validate(k))
     path = tmp_path / "etc" / "rsu.yaml"
     (tmp_path / "etc" / "cameras").mkdir(parents=True)
     (tmp_path / "etc" / "cameras" / "ost.yaml").write_text(yaml.safe_dump(info))
