@@ -27,7 +27,7 @@ from daemon.keys import v2x_key
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.camera import lens_model_note
 from pipeline.errors import InputError
-from pipeline.frames import UtmFrame, poses_from_v2x, utm_epsg_for
+from pipeline.frames import UtmFrame, imprecise_note, poses_from_v2x, precise_v2x, utm_epsg_for
 from pipeline.loaders import (
     load_intrinsics,
     load_toolbox_detection_table,
@@ -37,6 +37,7 @@ from pipeline.loaders import (
 from pipeline.tables import PoseTable
 from schemas.atomic import write_atomic
 from schemas.common import EPSG_PATTERN, IDENTIFIER, LOCAL_CRS, CameraIntrinsics, VehicleProfile
+from schemas.config import GatesConfig
 from schemas.messages import VehiclePose
 from schemas.results import CalibrationResult
 
@@ -78,6 +79,7 @@ def load_offline_inputs(
     time_offset_ns: int = 0,
     frame: str = "utm",
     origin: str | None = None,
+    max_v2x_std_m: float = GatesConfig().max_v2x_std_m,
 ) -> OfflineInputs:
     """Build one camera's CalibrationInputs from an MCAP recording or from the toolbox YAML pair.
 
@@ -87,7 +89,8 @@ def load_offline_inputs(
 
     MCAP: the detections of `camera_id` (may be omitted when the file holds one camera) and the V2X
     positions of `station_id` (may be omitted when there is one station), converted to UTM poses in
-    `crs` (default: the UTM zone of the first position). YAML: detections.yaml + poses.yaml (absolute UTM
+    `crs` (default: the UTM zone of the first position), without those reported less accurate than
+    `max_v2x_std_m` (pipeline.frames.precise_v2x). YAML: detections.yaml + poses.yaml (absolute UTM
     of `crs`, default DEFAULT_YAML_CRS); the camera id is `camera_id`, else camera.yaml's stem.
     """
     if (mcap_path is None) == (detections_path is None and poses_path is None):
@@ -126,7 +129,9 @@ def load_offline_inputs(
         else [lens if isinstance(camera_path, CameraIntrinsics) else f"{camera_path}: {lens}"]
     )
     if mcap_path is not None:
-        loaded = _from_mcap(Path(mcap_path), intrinsics, vehicle, camera_id, station_id, crs, time_offset_ns)
+        loaded = _from_mcap(
+            Path(mcap_path), intrinsics, vehicle, camera_id, station_id, crs, time_offset_ns, max_v2x_std_m
+        )
         return replace(loaded, notes=(*lens_notes, *loaded.notes))
     assert detections_path is not None and poses_path is not None
     notes: list[str] = lens_notes
@@ -172,6 +177,7 @@ def _from_mcap(
     station_id: int | None,
     crs: str | None,
     time_offset_ns: int,
+    max_v2x_std_m: float,
 ) -> OfflineInputs:
     # Read every camera and station, then choose: a wrong or missing choice can then list the real ones.
     from daemon.recording import read_recording  # mcap: not loaded for the toolbox's YAML files
@@ -223,7 +229,10 @@ def _from_mcap(
         except InputError as err:
             raise InputError(str(path), f"{v2x_key(station_id)}: {err.detail}") from err
         notes.append(f"crs {crs}: the UTM zone of the first V2X position (--crs to override)")
-    poses, skipped = poses_from_v2x(messages, UtmFrame(crs))
+    precise, imprecise = precise_v2x(messages, max_v2x_std_m)
+    if imprecise:
+        notes.append(f"{path}: {imprecise_note(imprecise, len(messages), max_v2x_std_m)}")
+    poses, skipped = poses_from_v2x(precise, UtmFrame(crs))
     if skipped:
         notes.append(f"{path}: {skipped} V2X position(s) of station {station_id} not representable in {crs}")
 
@@ -419,7 +428,8 @@ def inputs_from_simulation(result: SimulationResult, camera_id: str | None = Non
     the daemon does), else its IMU poses (the toolbox's poses.yaml); the simulated vehicle clock offset is
     passed as the configured one. The camera's latency is not passed: rsucal does not know it."""
     if result.v2x_mode == "cam":
-        poses, _ = poses_from_v2x(result.v2x, UtmFrame(result.origin.crs))
+        precise, _ = precise_v2x(result.v2x, GatesConfig().max_v2x_std_m)
+        poses, _ = poses_from_v2x(precise, UtmFrame(result.origin.crs))
     else:
         poses = result.poses
     camera = (

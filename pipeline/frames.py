@@ -124,6 +124,33 @@ def poses_from_v2x(messages: Sequence[V2xPosition], frame: UtmFrame) -> tuple[li
     return poses, int((~finite).sum())
 
 
+def precise_v2x(messages: Sequence[V2xPosition], max_std_m: float) -> tuple[list[V2xPosition], int]:
+    """The positions precise enough to calibrate from, and how many were not: a station's reported 1-sigma
+    accuracy (when it reports one) must be within `max_std_m` horizontally and twice that vertically (a
+    GNSS height is about half as good as its position). RTK float and DGPS positions, 0.2-1 m off, would
+    put the camera as far off; the receiver knows and says so, and its fixed positions stay usable."""
+    kept = [message for message in messages if not _imprecise(message, max_std_m)]
+    return kept, len(messages) - len(kept)
+
+
+def _imprecise(message: V2xPosition, max_std_m: float) -> bool:
+    accuracies = message.accuracies
+    if accuracies is None:
+        return False
+    horizontal, vertical = accuracies.horizontal_m, accuracies.vertical_m
+    return (horizontal is not None and horizontal > max_std_m) or (
+        vertical is not None and vertical > 2.0 * max_std_m
+    )
+
+
+def imprecise_note(dropped: int, total: int, max_std_m: float) -> str:
+    """What precise_v2x left out, said the same way by every caller."""
+    return (
+        f"{dropped} of {total} V2X position(s) not used: the vehicle reported them less accurate than "
+        f"{max_std_m} m (1 sigma; gates.max_v2x_std_m, vertically twice that): RTK float or no RTK"
+    )
+
+
 def v2x_from_pose(
     pose: VehiclePose, frame: UtmFrame, station_id: int, speed_mps: float, **extra: float | None
 ) -> V2xPosition:

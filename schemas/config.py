@@ -278,6 +278,11 @@ class GatesConfig(StrictModel):
     # 0.5 m GNSS noise ~10-15 %, another vehicle's track far more (its size and path do not fit the cuboid).
     # A median is robust to the few foreign boxes an identity switch puts into a track.
     max_box_error_pct: float = Field(default=25.0, gt=0.0, le=100.0, allow_inf_nan=False)
+    # V2X positions whose reported 1-sigma accuracy is worse than this horizontally (or twice this
+    # vertically: GNSS heights are about half as good) are not used: RTK fixed reports 1-3 cm, RTK float and
+    # DGPS 0.2-1 m, and a pose half a metre off is a camera half a metre off. Positions without a reported
+    # accuracy are used (the toolbox's poses.yaml has none).
+    max_v2x_std_m: float = Field(default=0.1, gt=0.0, le=100.0, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _heights(self) -> GatesConfig:

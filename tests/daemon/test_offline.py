@@ -21,7 +21,7 @@ from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, pose_from_v2x
 from pipeline.loaders import load_calibration_result
 from schemas.common import Box, CameraIntrinsics
-from schemas.messages import DetectionFrame, V2xPosition
+from schemas.messages import DetectionFrame, V2xAccuracies, V2xPosition
 from schemas.results import CalibrationResult, Verdict
 
 T0 = 1_700_000_000_000_000_000
@@ -98,6 +98,29 @@ def test_mcap_with_several_stations_lists_them_with_counts(site: Path) -> None:
     assert loaded.inputs.station_id == 4711 and len(loaded.inputs.poses) == 20
     with pytest.raises(InputError, match="no positions of station 5"):
         load_offline_inputs(site / "cam_north.yaml", site / "vehicle.yaml", mcap_path=mcap, station_id=5)
+
+
+def test_mcap_positions_reported_imprecise_are_not_calibrated_from(site: Path) -> None:
+    # The receiver lost RTK fix for a while (float: 0.4 m, 1 sigma) and said so.
+    mcap = site / "rec.mcap"
+    with RecordingWriter(mcap) as writer:
+        for i in range(20):
+            accuracy = 0.4 if 5 <= i < 12 else 0.015
+            message = _v2x(7, i).model_copy(
+                update={"accuracies": V2xAccuracies(horizontal_m=accuracy, vertical_m=2 * accuracy)}
+            )
+            writer.write_v2x(message, message.stamp_ns + 1000)
+        box = Box(x1=100.0, y1=500.0, x2=180.0, y2=560.0, cls=4, score=0.9)
+        writer.write_detections("rsu-7", DetectionFrame(camera_id="north", stamp_ns=T0, boxes=[box]), T0)
+    loaded = load_offline_inputs(site / "cam_north.yaml", site / "vehicle.yaml", mcap_path=mcap)
+    stamps = [pose.stamp_ns for pose in loaded.inputs.poses]
+    assert stamps == [T0 + i * 100_000_000 for i in (*range(5), *range(12, 20))]
+    assert any("7 of 20 V2X position(s) not used" in note and "0.1 m" in note for note in loaded.notes)
+    # A looser limit (an operator's choice for a vehicle without RTK) keeps them.
+    looser = load_offline_inputs(
+        site / "cam_north.yaml", site / "vehicle.yaml", mcap_path=mcap, max_v2x_std_m=0.5
+    )
+    assert len(looser.inputs.poses) == 20 and not any("not used" in n for n in looser.notes)
 
 
 def test_mcap_without_v2x_is_bad_input(site: Path) -> None:

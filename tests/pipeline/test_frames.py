@@ -17,9 +17,17 @@ from hypothesis import strategies as st
 from pyproj import CRS, Geod, Proj, Transformer
 
 from pipeline.errors import InputError
-from pipeline.frames import UtmFrame, local_points, pose_from_v2x, poses_to_array, utm_epsg_for, v2x_from_pose
+from pipeline.frames import (
+    UtmFrame,
+    local_points,
+    pose_from_v2x,
+    poses_to_array,
+    precise_v2x,
+    utm_epsg_for,
+    v2x_from_pose,
+)
 from schemas.common import LocalOrigin
-from schemas.messages import V2xPosition, VehiclePose
+from schemas.messages import V2xAccuracies, V2xPosition, VehiclePose
 
 STAMP = 1_700_000_000_000_000_000
 WGS84 = Geod(ellps="WGS84")
@@ -281,3 +289,41 @@ def test_poses_to_array_is_local_and_in_pose_array_order() -> None:
 def test_poses_to_array_of_nothing_has_the_right_shapes() -> None:
     stamps, array = poses_to_array([], ORIGIN)
     assert stamps.shape == (0,) and array.shape == (0, 6)
+
+
+def _reported(stamp: int, horizontal: float | None, vertical: float | None) -> V2xPosition:
+    accuracies = (
+        None
+        if horizontal is None and vertical is None
+        else V2xAccuracies(horizontal_m=horizontal, vertical_m=vertical)
+    )
+    return V2xPosition(
+        station_id=1,
+        stamp_ns=1_700_000_000_000_000_000 + stamp,
+        lat=48.0,
+        lon=9.0,
+        alt=500.0,
+        heading_deg=0.0,
+        speed=10.0,
+        accuracies=accuracies,
+    )
+
+
+def test_positions_reported_imprecise_are_left_out_and_counted() -> None:
+    # RTK fixed (1-3 cm), its height (twice), none reported (kept), RTK float horizontally, then vertically;
+    # the limits themselves are still precise enough.
+    messages = [
+        _reported(0, 0.014, 0.028),
+        _reported(1, None, None),
+        _reported(2, 0.1, 0.2),
+        _reported(3, 0.35, 0.7),
+        _reported(4, 0.02, 0.25),
+        _reported(5, None, 0.5),
+        _reported(6, 0.5, None),
+        _reported(7, 0.05, None),
+    ]
+    kept, dropped = precise_v2x(messages, 0.1)
+    assert [m.stamp_ns - 1_700_000_000_000_000_000 for m in kept] == [0, 1, 2, 7]
+    assert dropped == 4
+    assert precise_v2x(messages, 1.0) == (messages, 0)
+    assert precise_v2x([], 0.1) == ([], 0)
