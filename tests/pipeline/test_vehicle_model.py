@@ -230,10 +230,12 @@ def test_consistent_traversals_agree():
     assert check.covariance is not None
 
 
-def _five_passes(moved_m: float, turned_deg: float, seed: int, moved_from: int = 4, passes: int = 5):
+def _five_passes(
+    moved_m: float, turned_deg: float, seed: int, moved_from: int = 4, passes: int = 5, stride: int = 1
+):
     """Five drive-pasts (0.5 px noise; `passes` 6 adds a sixth); those from index `moved_from` on (default:
     the last one) seen from the camera moved `moved_m` along x and turned `turned_deg` about the vertical,
-    as if it had been knocked between two drive-pasts."""
+    as if it had been knocked between two drive-pasts. `stride`: every so many frames only."""
     pieces = [
         _drive(0.0, (8.0, -18.0), math.radians(90.0), 7.0, 0.0, 5.5),
         _drive(30.0, (14.0, 18.0), math.radians(-90.0), 6.0, 0.0, 6.0),
@@ -248,7 +250,7 @@ def _five_passes(moved_m: float, turned_deg: float, seed: int, moved_from: int =
     x[_DELTA], x[_SHAPE], x[_BIAS] = SHIFT_TRUE_S, SHAPE_TRUE, BIAS_TRUE
     tracks = []
     for index, (stamps, _poses) in enumerate(pieces):
-        frame_stamps = stamps[5:-5] + 3_000_000
+        frame_stamps = stamps[5:-5:stride] + 3_000_000
         R, C = R_TRUE, C_TRUE
         if index >= moved_from:
             R = R_TRUE @ rotation_from_rvec(np.array([0.0, 0.0, math.radians(turned_deg)])).T
@@ -350,11 +352,12 @@ def test_five_consistent_drive_pasts_agree(passes: int):
 
 def test_the_left_out_and_half_fits_run_in_a_process_pool_with_identical_results():
     """Leaving each of six drive-pasts out and the two halves are independent fits: mapped over a pool of
-    two forked processes they give bit for bit the fits and the check of the serial run."""
+    two forked processes they give bit for bit the fits and the check of the serial run (every third frame:
+    the fits' identity, not their accuracy, is tested)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    trajectory, tracks = _five_passes(0.3, 0.0, seed=1, moved_from=3, passes=6)
+    trajectory, tracks = _five_passes(0.3, 0.0, seed=1, moved_from=3, passes=6, stride=3)
     params = ModelParams()
     fit = fit_vehicle_model(*_start(2), tracks, trajectory, CAMERA, VEHICLE, params)
     serial = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params)
