@@ -310,8 +310,9 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
             f"window: {detections} detection frame(s) of camera {spec.camera_id}, {poses} pose(s) of "
             f"station {spec.station_id} from {len(spec.recordings)} recording(s)"
         )
-        if imprecise:
-            notes.append(imprecise_note(imprecise, len(window.v2x), spec.gates.max_v2x_std_m))
+        left_out = imprecise_note(imprecise, len(window.v2x), spec.gates.max_v2x_std_m) if imprecise else ""
+        if left_out:
+            notes.append(left_out)
         if unrepresentable:
             notes.append(f"{unrepresentable} V2X position(s) not representable in {spec.crs}: skipped")
         inputs = CalibrationInputs(
@@ -325,6 +326,7 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
             time_offset_ns=spec.time_offset_ns,
             station_id=spec.station_id,
             recordings=spec.recordings,
+            poses_left_out=left_out,
         )
         # Forking the track pool from this worker is safe: a spawned pool worker runs no other thread. With
         # nothing to fit, calibrate() refuses at once and a pool would only cost its start-up.

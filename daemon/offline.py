@@ -230,8 +230,9 @@ def _from_mcap(
             raise InputError(str(path), f"{v2x_key(station_id)}: {err.detail}") from err
         notes.append(f"crs {crs}: the UTM zone of the first V2X position (--crs to override)")
     precise, imprecise = precise_v2x(messages, max_v2x_std_m)
-    if imprecise:
-        notes.append(f"{path}: {imprecise_note(imprecise, len(messages), max_v2x_std_m)}")
+    left_out = imprecise_note(imprecise, len(messages), max_v2x_std_m) if imprecise else ""
+    if left_out:
+        notes.append(f"{path}: {left_out}")
     poses, skipped = poses_from_v2x(precise, UtmFrame(crs))
     if skipped:
         notes.append(f"{path}: {skipped} V2X position(s) of station {station_id} not representable in {crs}")
@@ -247,6 +248,7 @@ def _from_mcap(
         time_offset_ns=time_offset_ns,
         station_id=station_id,
         recordings=(str(path),),
+        poses_left_out=left_out,
     )
     return OfflineInputs(inputs, tuple(notes))
 

@@ -103,6 +103,9 @@ class CalibrationInputs:
     time_offset_ns: int = 0  # vehicle clock minus camera clock, when known
     station_id: int | None = None
     recordings: tuple[str, ...] = ()
+    # Why reported poses were left out before they reached here (e.g. pipeline.frames.imprecise_note), said
+    # with a refusal for want of poses: "no poses" alone would send the operator looking in the wrong place.
+    poses_left_out: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,12 +281,11 @@ def _calibrate(
     def refuse(reason: str, origin: LocalOrigin | None = None) -> CalibrationOutcome:
         return _refused(inputs, params, origin, created_at_ns, reason, report, diagnostics)
 
-    if not inputs.poses or not inputs.detections:
-        return refuse(
-            "no calibration-vehicle poses in the data window"
-            if not inputs.poses
-            else "no detections from this camera in the data window"
-        )
+    if not inputs.poses:
+        why = f" ({inputs.poses_left_out})" if inputs.poses_left_out else ""
+        return refuse(f"no calibration-vehicle poses in the data window{why}")
+    if not inputs.detections:
+        return refuse("no detections from this camera in the data window")
 
     say("association", 0.0)  # poses into the local frame, on the camera clock
     origin = _local_origin(inputs.poses, inputs.crs)

@@ -239,6 +239,19 @@ def test_window_without_vehicle_data_is_refused_not_failed(scene: Scene) -> None
     assert other_station.poses == 0
 
 
+def test_positions_reported_too_imprecise_are_left_out_and_the_refusal_says_so(scene: Scene) -> None:
+    # The simulated vehicle reports 0.075 m (1 sigma): with a limit of 0.05 m none of its positions is used.
+    strict = dataclasses.replace(scene.spec, gates=GatesConfig(max_v2x_std_m=0.05))
+    outcome = run_job(strict)
+    result = _result_of(outcome)
+    sent = sum(1 for m in scene.sim.v2x if m.station_id == scene.sim.station_id)
+    said = f"{sent} of {sent} V2X position(s) not used: the vehicle reported them less accurate than 0.05 m"
+    assert result.verdict.status == "refused"
+    assert result.verdict.reasons[0].startswith("no calibration-vehicle poses in the data window (" + said)
+    assert any(note.startswith(said) for note in outcome.stage_notes)
+    assert outcome.poses == 0
+
+
 def _embedded_pngs(html_text: str) -> list[np.ndarray]:
     """Every data:image/png figure of a report, decoded (an image that does not decode fails here)."""
     images = []

@@ -17,6 +17,7 @@ from daemon.offline import (
     write_result,
 )
 from daemon.recording import RecordingWriter
+from pipeline.calibrate import PipelineParams, calibrate
 from pipeline.errors import InputError
 from pipeline.frames import UtmFrame, pose_from_v2x
 from pipeline.loaders import load_calibration_result
@@ -121,6 +122,19 @@ def test_mcap_positions_reported_imprecise_are_not_calibrated_from(site: Path) -
         site / "cam_north.yaml", site / "vehicle.yaml", mcap_path=mcap, max_v2x_std_m=0.5
     )
     assert len(looser.inputs.poses) == 20 and not any("not used" in n for n in looser.notes)
+    # None precise enough: calibrate's refusal names the reason, not just the missing poses.
+    stricter = load_offline_inputs(
+        site / "cam_north.yaml", site / "vehicle.yaml", mcap_path=mcap, max_v2x_std_m=0.01
+    )
+    assert stricter.inputs.poses == []
+    outcome = calibrate(
+        stricter.inputs, PipelineParams(), np.random.default_rng(0), created_at_ns=T0, map_fn=map
+    )
+    assert outcome.result.verdict.reasons == [
+        "no calibration-vehicle poses in the data window (20 of 20 V2X position(s) not used: the vehicle "
+        "reported them less accurate than 0.01 m (1 sigma; gates.max_v2x_std_m, vertically twice that): "
+        "RTK float or no RTK)"
+    ]
 
 
 def test_mcap_without_v2x_is_bad_input(site: Path) -> None:
