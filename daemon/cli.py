@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from daemon.bridge_cli import add_bridge_parser
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
-from schemas.config import DaemonConfig
+from schemas.config import DaemonConfig, GatesConfig
 from sim.errors import SimulationError
 
 if TYPE_CHECKING:
@@ -70,8 +70,8 @@ def _integer(low: int, high: int | None = None, bounds: str | None = None) -> Ca
     return parse
 
 
-def _positive_seconds(text: str) -> float:
-    """A finite number > 0 (time-outs, rates)."""
+def _positive_number(text: str) -> float:
+    """A finite number > 0 (time-outs, rates, limits)."""
     try:
         value = float(text)
     except ValueError:
@@ -259,6 +259,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         time_offset_ns=args.time_offset_ns,
         frame=args.frame,
         origin=args.origin,
+        max_v2x_std_m=args.max_v2x_std,
     )
     for note in loaded.notes:
         print(f"note: {note}")
@@ -292,6 +293,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
         time_offset_ns=args.time_offset_ns,
         seed=args.seed,
         workers=args.workers,
+        max_v2x_std_m=args.max_v2x_std,
     )
     for path in written:
         print(f"wrote {path}")
@@ -472,6 +474,14 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument(
         "--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns (default 0)"
     )
+    cal.add_argument(
+        "--max-v2x-std",
+        metavar="M",
+        type=_positive_number,
+        default=GatesConfig().max_v2x_std_m,
+        help="--mcap: V2X positions the vehicle reports less accurate than this (1 sigma, m; vertically "
+        "twice) are not used (default %(default)s: RTK fixed; the daemon's gates.max_v2x_std_m)",
+    )
     cal.add_argument("--seed", type=_SEED, default=0, help="RANSAC random seed, >= 0 (default 0)")
     cal.add_argument(
         "--workers",
@@ -501,6 +511,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--poses", help="toolbox poses.yaml (with --detections)")
     rep.add_argument("--station-id", type=int, help="MCAP: the calibration vehicle (default: the result's)")
     rep.add_argument("--time-offset-ns", type=int, default=0, help="vehicle clock minus camera clock, ns")
+    rep.add_argument(
+        "--max-v2x-std",
+        metavar="M",
+        type=_positive_number,
+        default=GatesConfig().max_v2x_std_m,
+        help="--mcap: as for calibrate (default %(default)s)",
+    )
     rep.add_argument(
         "--seed", type=_SEED, default=0, help="RANSAC random seed of the re-run, >= 0 (default 0)"
     )
@@ -544,7 +561,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--rsu", default=None, help="only this RSU (default: every RSU that answers)")
     st.add_argument("--camera", default=None, help="only this camera")
     st.add_argument(
-        "--timeout", dest="timeout_s", type=_positive_seconds, default=3.0, help="seconds to wait for answers"
+        "--timeout", dest="timeout_s", type=_positive_number, default=3.0, help="seconds to wait for answers"
     )
     st.add_argument("--json", action="store_true", help="print the raw JSON answers")
     st.set_defaults(func=_cmd_status)
@@ -555,11 +572,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--preset", default="sil-west", help="simulator preset (default sil-west, 2 cameras)")
     demo.add_argument("--seed", type=_SEED, default=0, help="simulator seed, >= 0 (default 0)")
     demo.add_argument(
-        "--rate", type=_positive_seconds, default=20.0, help="time acceleration, > 0 (default 20x)"
+        "--rate", type=_positive_number, default=20.0, help="time acceleration, > 0 (default 20x)"
     )
     demo.add_argument(
         "--timeout",
-        type=_positive_seconds,
+        type=_positive_number,
         help="give up after this many seconds (default 300; 3600 with --images)",
     )
     demo.add_argument(

@@ -310,7 +310,10 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
             f"window: {detections} detection frame(s) of camera {spec.camera_id}, {poses} pose(s) of "
             f"station {spec.station_id} from {len(spec.recordings)} recording(s)"
         )
-        left_out = imprecise_note(imprecise, len(window.v2x), spec.gates.max_v2x_std_m) if imprecise else ""
+        limit = spec.gates.max_v2x_std_m
+        left_out = (
+            imprecise_note(imprecise, len(window.v2x), limit, "gates.max_v2x_std_m") if imprecise else ""
+        )
         if left_out:
             notes.append(left_out)
         if unrepresentable:

@@ -230,7 +230,7 @@ def _from_mcap(
             raise InputError(str(path), f"{v2x_key(station_id)}: {err.detail}") from err
         notes.append(f"crs {crs}: the UTM zone of the first V2X position (--crs to override)")
     precise, imprecise = precise_v2x(messages, max_v2x_std_m)
-    left_out = imprecise_note(imprecise, len(messages), max_v2x_std_m) if imprecise else ""
+    left_out = imprecise_note(imprecise, len(messages), max_v2x_std_m, "--max-v2x-std") if imprecise else ""
     if left_out:
         notes.append(f"{path}: {left_out}")
     poses, skipped = poses_from_v2x(precise, UtmFrame(crs))

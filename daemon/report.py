@@ -43,6 +43,7 @@ from pipeline.refinement import RefinementParams, box_residuals
 from pipeline.vehicle import body_corners, footprint_corners
 from schemas.atomic import write_atomic
 from schemas.common import VehicleProfile
+from schemas.config import GatesConfig
 from schemas.messages import DetectionFrame
 from schemas.results import CalibrationResult
 
@@ -702,6 +703,7 @@ def run_report(
     time_offset_ns: int = 0,
     seed: int = 0,
     workers: int | None = None,
+    max_v2x_std_m: float = GatesConfig().max_v2x_std_m,
 ) -> list[Path]:
     """`rsucal report`: re-run calibrate() on the result's data and write report.html + PNGs to `out_dir`.
 
@@ -728,6 +730,7 @@ def run_report(
         crs=None if result.frame.crs == LOCAL_CRS else result.frame.crs,
         frame="local" if result.frame.crs == LOCAL_CRS else "utm",
         time_offset_ns=time_offset_ns,
+        max_v2x_std_m=max_v2x_std_m,
     )
     with track_pool(workers) as map_fn:
         outcome = calibrate(

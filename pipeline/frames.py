@@ -143,11 +143,11 @@ def _imprecise(message: V2xPosition, max_std_m: float) -> bool:
     )
 
 
-def imprecise_note(dropped: int, total: int, max_std_m: float) -> str:
-    """What precise_v2x left out, said the same way by every caller."""
+def imprecise_note(dropped: int, total: int, max_std_m: float, setting: str) -> str:
+    """What precise_v2x left out, said the same way everywhere; `setting` names where the limit is set."""
     return (
         f"{dropped} of {total} V2X position(s) not used: the vehicle reported them less accurate than "
-        f"{max_std_m} m (1 sigma; gates.max_v2x_std_m, vertically twice that): RTK float or no RTK"
+        f"{max_std_m} m (1 sigma, vertically twice that; {setting}): RTK float or no RTK"
     )
 
 

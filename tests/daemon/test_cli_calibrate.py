@@ -201,6 +201,21 @@ def test_no_target_exits_3_with_the_reason(tmp_path: Path) -> None:
         assert f"reason     {reason}" in run.stdout
 
 
+def test_a_vehicle_less_accurate_than_the_limit_is_refused_saying_so(carla: Scene, tmp_path: Path) -> None:
+    # The simulated vehicle reports 0.02 m (1 sigma); a limit of 0.01 m leaves none of its positions.
+    sent = len(carla.sim.v2x)
+    args = [*carla.common(), "--mcap", *carla.files("recording.mcap"), "--max-v2x-std", "0.01"]
+    run = _rsucal(args, tmp_path / "strict.json")
+    assert run.code == cli.EXIT_REFUSED, run.stdout + run.stderr
+    said = f"{sent} of {sent} V2X position(s) not used: the vehicle reported them less accurate than 0.01 m"
+    assert f"note: {carla.dir / 'recording.mcap'}: {said}" in run.stdout
+    assert (
+        load_calibration_result(run.out)
+        .verdict.reasons[0]
+        .startswith(f"no calibration-vehicle poses in the data window ({said}")
+    )
+
+
 # ---------------------------------------------------------------------------------------------- bad input
 
 

@@ -75,6 +75,15 @@ def test_workers_below_one_are_refused(workers: str) -> None:
     assert_bad_input(rsucal(argv), "--workers")
 
 
+@pytest.mark.parametrize("command", ["calibrate", "report"])
+@pytest.mark.parametrize("limit", ["0", "-0.1", "nan", "inf", "rtk"])
+def test_the_v2x_accuracy_limit_must_be_a_positive_finite_number(command: str, limit: str) -> None:
+    argv = [command, "--camera", "c", "--vehicle", "v", "--mcap", "m", "--max-v2x-std", limit, "--out", "r"]
+    if command == "report":
+        argv = ["report", "r.json", "--vehicle", "v", "--mcap", "m", "--max-v2x-std", limit, "--out", "r"]
+    assert_bad_input(rsucal(argv), "--max-v2x-std")
+
+
 @pytest.mark.parametrize("rate", ["0", "-1", "nan", "inf", "fast"])
 def test_demo_rate_must_be_a_positive_finite_number(rate: str) -> None:
     assert_bad_input(rsucal(["demo", "--rate", rate]), "--rate")

@@ -132,8 +132,8 @@ def test_mcap_positions_reported_imprecise_are_not_calibrated_from(site: Path) -
     )
     assert outcome.result.verdict.reasons == [
         "no calibration-vehicle poses in the data window (20 of 20 V2X position(s) not used: the vehicle "
-        "reported them less accurate than 0.01 m (1 sigma; gates.max_v2x_std_m, vertically twice that): "
-        "RTK float or no RTK)"
+        "reported them less accurate than 0.01 m (1 sigma, vertically twice that; --max-v2x-std): RTK "
+        "float or no RTK)"
     ]
 
 

@@ -235,6 +235,7 @@ def command_line(draw: st.DrawFn) -> tuple[list[str], bool]:
             ),
             option("--seed", seeds, HOSTILE_NUMBERS),
             option("--workers", ("1",), HOSTILE_NUMBERS),
+            option("--max-v2x-std", ("0.1", "0.5"), HOSTILE_NUMBERS),
             flag("--verbose"),
         ]
         if source in ("mcap", "both"):
@@ -250,6 +251,7 @@ def command_line(draw: st.DrawFn) -> tuple[list[str], bool]:
             option("--station-id", ("4242",), HOSTILE_NUMBERS),
             option("--seed", seeds, HOSTILE_NUMBERS),
             option("--workers", ("1",), HOSTILE_NUMBERS),
+            option("--max-v2x-std", ("0.1",), HOSTILE_NUMBERS),
             option("--out", (str(DIR / "report"),), paths, required=True),
         ]
     elif command == "access-control":
