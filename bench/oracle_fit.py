@@ -1,0 +1,127 @@
+"""What the final fit's model does with the right tracks, the right clock and the right start.
+
+For each camera of a simulated scene, the calibration vehicle's own detected boxes (the truth says which
+they are) are fitted by `pipeline.vehicle_model.fit_trimmed` from the TRUE camera pose, with the boxes'
+stamps moved by the camera's true latency: no hypotheses, no grouping, no clock search. What is left of
+the pose error is what the model (body template, detector convention) and the vehicle's poses do to it.
+
+    python -m bench.oracle_fit --presets sil-north,slope --seeds 0,1 --poses cam
+    python -m bench.oracle_fit --presets sil-north --seeds 0 --poses cam --true-heights
+
+--poses true: the simulator's noise-free poses (with pitch and roll); cam: the poses rsucal would use, from
+the vehicle's CAMs (GNSS errors, no pitch or roll: pitch from the path as the pipeline takes it);
+--true-heights: the CAM poses with the true heights put in (what the GNSS height costs); --hold-z-low: the
+template's lower rectangle held at the road (its height is what trades with the vehicle's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+
+
+def fit_errors(
+    preset: str, seed: int, poses: str, true_heights: bool, hold_z_low: bool = False
+) -> list[dict[str, object]]:
+    """One record per camera that saw the vehicle in at least 50 frames."""
+    from bench.common import inputs_for
+    from pipeline.association import MatchedTrack, Trajectory
+    from pipeline.attitude import with_path_pitch
+    from pipeline.camera import CameraModel, rotation_angle_rad
+    from pipeline.frames import poses_to_array
+    from pipeline.vehicle_model import ModelParams, fit_trimmed
+    from sim.simulate import simulate
+
+    sim = simulate(preset, seed)
+    records: list[dict[str, object]] = []
+    for camera in sim.cameras:
+        truth = sim.ground_truth[camera.camera_id]
+        rows = [
+            (frame.stamp_ns, frame.boxes[seen.calib_box], seen.traversal)
+            for frame, seen in zip(sim.detections[camera.camera_id], truth.frames, strict=True)
+            if seen.calib_box is not None
+        ]
+        if len(rows) < 50:
+            continue
+        tracks = []
+        for traversal in sorted({row[2] for row in rows if row[2] is not None}):
+            chosen = [row for row in rows if row[2] == traversal]
+            stamps = np.array([row[0] for row in chosen], dtype=np.int64)
+            boxes = np.array([[b.x1, b.y1, b.x2, b.y2] for _, b, _ in chosen], dtype=np.float64)
+            tracks.append(MatchedTrack(traversal, stamps, boxes, np.zeros((len(stamps), 6))))
+        # Trajectory stamps on the boxes' clock: the true instants plus the camera's latency.
+        true_stamps = sim.true_stamps.astype(np.int64) + truth.latency_ns
+        trajectory = Trajectory(true_stamps, sim.true_poses.copy())
+        if poses == "cam":
+            inputs = inputs_for(sim, camera.camera_id)
+            stamps, local = poses_to_array(inputs.poses, sim.origin)
+            order = np.argsort(stamps, kind="stable")
+            stamps, local = stamps[order], local[order]
+            first = np.r_[True, np.diff(stamps) != 0]
+            stamps = stamps[first] - inputs.time_offset_ns + truth.latency_ns
+            local = local[first]
+            if true_heights:
+                local[:, 2] = np.interp(
+                    stamps.astype(np.float64), true_stamps.astype(np.float64), sim.true_poses[:, 2]
+                )
+            trajectory = with_path_pitch(Trajectory(stamps, local))
+        R, t = camera.R_cam_from_local, camera.t_cam_from_local
+        model = CameraModel.from_intrinsics(camera.intrinsics)
+        params = ModelParams()
+        if hold_z_low:  # the template's lower rectangle held at the road (1e-9 m: the pipeline's hold)
+            params = replace(params, shape_std=(1e-9, *params.shape_std[1:]))
+        fit, _ = fit_trimmed(R, t, tracks, trajectory, model, sim.vehicle, params)
+        error = fit.camera_centre - (-R.T @ t)
+        records.append(
+            {
+                "preset": preset,
+                "seed": seed,
+                "camera": camera.camera_id,
+                "vehicle_type": truth.vehicle_type,
+                "position_error_m": float(np.linalg.norm(error)),
+                "horizontal_error_m": float(np.hypot(error[0], error[1])),
+                "height_error_m": float(error[2]),
+                "rotation_error_deg": math.degrees(rotation_angle_rad(fit.R_cam_from_local, R)),
+                "converged": fit.converged,
+            }
+        )
+    return records
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.oracle_fit", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--presets", default="sil-north,sil-south,sil-west,slope,van")
+    parser.add_argument("--seeds", default="0,1")
+    parser.add_argument("--poses", choices=("true", "cam"), default="cam")
+    parser.add_argument("--true-heights", action="store_true", help="--poses cam with the true heights")
+    parser.add_argument("--hold-z-low", action="store_true", help="the template's lower rectangle at 0 m")
+    args = parser.parse_args(argv)
+    records = [
+        record
+        for preset in args.presets.split(",")
+        for seed in (int(s) for s in args.seeds.split(","))
+        for record in fit_errors(preset, seed, args.poses, args.true_heights, args.hold_z_low)
+    ]
+    for r in records:
+        print(
+            f"{r['preset']:14s} {r['seed']:3d} {r['camera']:14s} {r['vehicle_type']:10s} "
+            f"pos {r['position_error_m']:.3f} m  horizontal {r['horizontal_error_m']:.3f} m  "
+            f"height {r['height_error_m']:+.3f} m  rot {r['rotation_error_deg']:.3f} deg"
+            + ("" if r["converged"] else "  (not converged)")
+        )
+    if records:
+        position = np.array([r["position_error_m"] for r in records], dtype=np.float64)
+        height = np.array([r["height_error_m"] for r in records], dtype=np.float64)
+        print(
+            f"{len(records)} cameras: position median {np.median(position):.3f} m, mean "
+            f"{position.mean():.3f} m; height error mean {height.mean():+.3f} m"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
