@@ -29,10 +29,9 @@ def fit_errors(
 ) -> list[dict[str, object]]:
     """One record per camera that saw the vehicle in at least 50 frames."""
     from bench.common import inputs_for
-    from pipeline.association import MatchedTrack, Trajectory
+    from pipeline.association import AssociationParams, MatchedTrack, Trajectory, make_trajectory
     from pipeline.attitude import with_path_pitch
     from pipeline.camera import CameraModel, rotation_angle_rad
-    from pipeline.frames import poses_to_array
     from pipeline.vehicle_model import ModelParams, fit_trimmed
     from sim.simulate import simulate
 
@@ -57,13 +56,12 @@ def fit_errors(
         true_stamps = sim.true_stamps.astype(np.int64) + truth.latency_ns
         trajectory = Trajectory(true_stamps, sim.true_poses.copy())
         if poses == "cam":
+            # As the pipeline builds it (make_trajectory: sorted, on the camera clock), then on the boxes'.
             inputs = inputs_for(sim, camera.camera_id)
-            stamps, local = poses_to_array(inputs.poses, sim.origin)
-            order = np.argsort(stamps, kind="stable")
-            stamps, local = stamps[order], local[order]
-            first = np.r_[True, np.diff(stamps) != 0]
-            stamps = stamps[first] - inputs.time_offset_ns + truth.latency_ns
-            local = local[first]
+            cam = make_trajectory(
+                inputs.poses, sim.origin, AssociationParams(time_offset_ns=inputs.time_offset_ns)
+            )
+            stamps, local = cam.stamps + truth.latency_ns, cam.poses.copy()
             if true_heights:
                 local[:, 2] = np.interp(
                     stamps.astype(np.float64), true_stamps.astype(np.float64), sim.true_poses[:, 2]

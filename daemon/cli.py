@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from daemon.bridge_cli import add_bridge_parser
 from pipeline.errors import InputError, RecordingError, RsucalError
 from schemas.common import describe_validation_error
-from schemas.config import DaemonConfig, GatesConfig
+from schemas.config import DEFAULT_MAX_V2X_STD_M, DaemonConfig
 from sim.errors import SimulationError
 
 if TYPE_CHECKING:
@@ -478,7 +478,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-v2x-std",
         metavar="M",
         type=_positive_number,
-        default=GatesConfig().max_v2x_std_m,
+        default=DEFAULT_MAX_V2X_STD_M,
         help="--mcap: V2X positions the vehicle reports less accurate than this (1 sigma, m; vertically "
         "twice) are not used (default %(default)s: RTK fixed; the daemon's gates.max_v2x_std_m)",
     )
@@ -515,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-v2x-std",
         metavar="M",
         type=_positive_number,
-        default=GatesConfig().max_v2x_std_m,
+        default=DEFAULT_MAX_V2X_STD_M,
         help="--mcap: as for calibrate (default %(default)s)",
     )
     rep.add_argument(

@@ -40,7 +40,7 @@ from pipeline.calibrate import (
     calibrate,
 )
 from pipeline.errors import RsucalError
-from pipeline.frames import UtmFrame, imprecise_note, poses_from_v2x, precise_v2x
+from pipeline.frames import UtmFrame, poses_from_v2x, precise_v2x
 from schemas.common import CameraIntrinsics, VehicleProfile, describe_validation_error
 from schemas.config import GatesConfig, JobsConfig
 from schemas.messages import apply_labels
@@ -302,17 +302,13 @@ def _run_job(spec: JobSpec, progress: _Progress) -> JobOutcome:
         notes.extend(window.problems)
         if window.rejected:
             notes.append(f"{window.rejected} message(s) in the recordings failed validation and were skipped")
-        precise, imprecise = precise_v2x(window.v2x, spec.gates.max_v2x_std_m)
+        precise, left_out = precise_v2x(window.v2x, spec.gates.max_v2x_std_m, "gates.max_v2x_std_m")
         vehicle_poses, unrepresentable = poses_from_v2x(precise, UtmFrame(spec.crs))
         detections, poses = len(window.detections), len(vehicle_poses)
         progress.detections, progress.poses = detections, poses
         notes.append(
             f"window: {detections} detection frame(s) of camera {spec.camera_id}, {poses} pose(s) of "
             f"station {spec.station_id} from {len(spec.recordings)} recording(s)"
-        )
-        limit = spec.gates.max_v2x_std_m
-        left_out = (
-            imprecise_note(imprecise, len(window.v2x), limit, "gates.max_v2x_std_m") if imprecise else ""
         )
         if left_out:
             notes.append(left_out)

@@ -27,7 +27,7 @@ from daemon.keys import v2x_key
 from pipeline.calibrate import CalibrationInputs, CalibrationOutcome
 from pipeline.camera import lens_model_note
 from pipeline.errors import InputError
-from pipeline.frames import UtmFrame, imprecise_note, poses_from_v2x, precise_v2x, utm_epsg_for
+from pipeline.frames import UtmFrame, poses_from_v2x, precise_v2x, utm_epsg_for
 from pipeline.loaders import (
     load_intrinsics,
     load_toolbox_detection_table,
@@ -37,7 +37,7 @@ from pipeline.loaders import (
 from pipeline.tables import PoseTable
 from schemas.atomic import write_atomic
 from schemas.common import EPSG_PATTERN, IDENTIFIER, LOCAL_CRS, CameraIntrinsics, VehicleProfile
-from schemas.config import GatesConfig
+from schemas.config import DEFAULT_MAX_V2X_STD_M
 from schemas.messages import VehiclePose
 from schemas.results import CalibrationResult
 
@@ -79,7 +79,7 @@ def load_offline_inputs(
     time_offset_ns: int = 0,
     frame: str = "utm",
     origin: str | None = None,
-    max_v2x_std_m: float = GatesConfig().max_v2x_std_m,
+    max_v2x_std_m: float = DEFAULT_MAX_V2X_STD_M,
 ) -> OfflineInputs:
     """Build one camera's CalibrationInputs from an MCAP recording or from the toolbox YAML pair.
 
@@ -229,8 +229,7 @@ def _from_mcap(
         except InputError as err:
             raise InputError(str(path), f"{v2x_key(station_id)}: {err.detail}") from err
         notes.append(f"crs {crs}: the UTM zone of the first V2X position (--crs to override)")
-    precise, imprecise = precise_v2x(messages, max_v2x_std_m)
-    left_out = imprecise_note(imprecise, len(messages), max_v2x_std_m, "--max-v2x-std") if imprecise else ""
+    precise, left_out = precise_v2x(messages, max_v2x_std_m, "--max-v2x-std")
     if left_out:
         notes.append(f"{path}: {left_out}")
     poses, skipped = poses_from_v2x(precise, UtmFrame(crs))
@@ -430,7 +429,7 @@ def inputs_from_simulation(result: SimulationResult, camera_id: str | None = Non
     the daemon does), else its IMU poses (the toolbox's poses.yaml); the simulated vehicle clock offset is
     passed as the configured one. The camera's latency is not passed: rsucal does not know it."""
     if result.v2x_mode == "cam":
-        precise, _ = precise_v2x(result.v2x, GatesConfig().max_v2x_std_m)
+        precise, _ = precise_v2x(result.v2x, DEFAULT_MAX_V2X_STD_M, "gates.max_v2x_std_m")
         poses, _ = poses_from_v2x(precise, UtmFrame(result.origin.crs))
     else:
         poses = result.poses

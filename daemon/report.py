@@ -43,7 +43,7 @@ from pipeline.refinement import RefinementParams, box_residuals
 from pipeline.vehicle import body_corners, footprint_corners
 from schemas.atomic import write_atomic
 from schemas.common import VehicleProfile
-from schemas.config import GatesConfig
+from schemas.config import DEFAULT_MAX_V2X_STD_M
 from schemas.messages import DetectionFrame
 from schemas.results import CalibrationResult
 
@@ -703,7 +703,7 @@ def run_report(
     time_offset_ns: int = 0,
     seed: int = 0,
     workers: int | None = None,
-    max_v2x_std_m: float = GatesConfig().max_v2x_std_m,
+    max_v2x_std_m: float = DEFAULT_MAX_V2X_STD_M,
 ) -> list[Path]:
     """`rsucal report`: re-run calibrate() on the result's data and write report.html + PNGs to `out_dir`.
 

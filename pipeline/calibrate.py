@@ -103,7 +103,7 @@ class CalibrationInputs:
     time_offset_ns: int = 0  # vehicle clock minus camera clock, when known
     station_id: int | None = None
     recordings: tuple[str, ...] = ()
-    # Why reported poses were left out before they reached here (e.g. pipeline.frames.imprecise_note), said
+    # Why reported poses were left out before they reached here (e.g. pipeline.frames.precise_v2x), said
     # with a refusal for want of poses: "no poses" alone would send the operator looking in the wrong place.
     poses_left_out: str = ""
 

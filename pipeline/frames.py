@@ -124,13 +124,22 @@ def poses_from_v2x(messages: Sequence[V2xPosition], frame: UtmFrame) -> tuple[li
     return poses, int((~finite).sum())
 
 
-def precise_v2x(messages: Sequence[V2xPosition], max_std_m: float) -> tuple[list[V2xPosition], int]:
-    """The positions precise enough to calibrate from, and how many were not: a station's reported 1-sigma
-    accuracy (when it reports one) must be within `max_std_m` horizontally and twice that vertically (a
-    GNSS height is about half as good as its position). RTK float and DGPS positions, 0.2-1 m off, would
-    put the camera as far off; the receiver knows and says so, and its fixed positions stay usable."""
+def precise_v2x(
+    messages: Sequence[V2xPosition], max_std_m: float, setting: str
+) -> tuple[list[V2xPosition], str]:
+    """The positions precise enough to calibrate from, and what was left out ("" when nothing; `setting`
+    names where the limit is set): a station's reported 1-sigma accuracy (when it reports one) must be
+    within `max_std_m` horizontally and twice that vertically (a GNSS height is about half as good as its
+    position). RTK float and DGPS positions, 0.2-1 m off, would put the camera as far off; the receiver
+    knows and says so, and its fixed positions stay usable."""
     kept = [message for message in messages if not _imprecise(message, max_std_m)]
-    return kept, len(messages) - len(kept)
+    dropped = len(messages) - len(kept)
+    if not dropped:
+        return kept, ""
+    return kept, (
+        f"{dropped} of {len(messages)} V2X position(s) not used: the vehicle reported them less accurate "
+        f"than {max_std_m} m (1 sigma, vertically twice that; {setting}): RTK float or no RTK"
+    )
 
 
 def _imprecise(message: V2xPosition, max_std_m: float) -> bool:
@@ -140,14 +149,6 @@ def _imprecise(message: V2xPosition, max_std_m: float) -> bool:
     horizontal, vertical = accuracies.horizontal_m, accuracies.vertical_m
     return (horizontal is not None and horizontal > max_std_m) or (
         vertical is not None and vertical > 2.0 * max_std_m
-    )
-
-
-def imprecise_note(dropped: int, total: int, max_std_m: float, setting: str) -> str:
-    """What precise_v2x left out, said the same way everywhere; `setting` names where the limit is set."""
-    return (
-        f"{dropped} of {total} V2X position(s) not used: the vehicle reported them less accurate than "
-        f"{max_std_m} m (1 sigma, vertically twice that; {setting}): RTK float or no RTK"
     )
 
 

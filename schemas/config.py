@@ -259,6 +259,10 @@ class IngestConfig(StrictModel):
     )
 
 
+# gates.max_v2x_std_m's default, for the offline commands that have no rsu.yaml (1 sigma, m: RTK fixed).
+DEFAULT_MAX_V2X_STD_M = 0.1
+
+
 class GatesConfig(StrictModel):
     """Validation gates before anything is published (docs/design.md defaults); the one definition of the
     gates: the pipeline's validation (pipeline.validation.validate) takes this model."""
@@ -282,7 +286,7 @@ class GatesConfig(StrictModel):
     # vertically: GNSS heights are about half as good) are not used: RTK fixed reports 1-3 cm, RTK float and
     # DGPS 0.2-1 m, and a pose half a metre off is a camera half a metre off. Positions without a reported
     # accuracy are used (the toolbox's poses.yaml has none).
-    max_v2x_std_m: float = Field(default=0.1, gt=0.0, le=100.0, allow_inf_nan=False)
+    max_v2x_std_m: float = Field(default=DEFAULT_MAX_V2X_STD_M, gt=0.0, le=100.0, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _heights(self) -> GatesConfig:

@@ -322,8 +322,11 @@ def test_positions_reported_imprecise_are_left_out_and_counted() -> None:
         _reported(6, 0.5, None),
         _reported(7, 0.05, None),
     ]
-    kept, dropped = precise_v2x(messages, 0.1)
+    kept, note = precise_v2x(messages, 0.1, "the limit")
     assert [m.stamp_ns - 1_700_000_000_000_000_000 for m in kept] == [0, 1, 2, 7]
-    assert dropped == 4
-    assert precise_v2x(messages, 1.0) == (messages, 0)
-    assert precise_v2x([], 0.1) == ([], 0)
+    assert note == (
+        "4 of 8 V2X position(s) not used: the vehicle reported them less accurate than 0.1 m (1 sigma, "
+        "vertically twice that; the limit): RTK float or no RTK"
+    )
+    assert precise_v2x(messages, 1.0, "the limit") == (messages, "")
+    assert precise_v2x([], 0.1, "the limit") == ([], "")
