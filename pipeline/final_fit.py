@@ -40,6 +40,7 @@ from pipeline.vehicle_model import (
     model_box_errors,
     model_footprints,
     unbiased_boxes,
+    with_drive_past_heights,
 )
 
 
@@ -113,8 +114,18 @@ class FinalFit:
                 f"{self.fit.rotation_std_deg:.3f} deg, "
                 f"{self.check.traversals} traversals, leaving one out moves the pose up to "
                 f"{self.check.shift_m:.2f} m / {self.check.angle_deg:.2f} deg, the body shape the "
-                f"template cannot describe adds {body_m:.3f} m / {body_deg:.3f} deg",
+                f"template cannot describe adds {body_m:.3f} m / {body_deg:.3f} deg{self._heights()}",
             ),
+        )
+
+    def _heights(self) -> str:
+        offsets = self.fit.height_offsets_m
+        if len(offsets) == 0:
+            return ""
+        listed = ", ".join(f"{offset:+.2f}" for offset in offsets)
+        return (
+            f"; on its drive-pasts the vehicle sat {listed} m above its GNSS heights (fitted: chi-square "
+            f"{self.fit.heights_chi2():.0f}, {len(offsets)} dof)"
         )
 
     def _time_parts(self) -> str:
@@ -234,6 +245,9 @@ def joint_fit(chosen: Candidate, scene: Scene, model: ModelParams, min_time_shif
             fit = fit_vehicle_model(
                 fit.R_cam_from_local, fit.t_cam_from_local, used, trajectory, camera, vehicle, model_params
             )
+    # The vehicle's height per drive-past, where the boxes show the GNSS heights of its drive-pasts apart
+    # (vehicle_model.ModelParams.drive_past_heights); the final fit's every part then fits them too.
+    fit, model_params = with_drive_past_heights(fit, used, trajectory, camera, vehicle, model_params)
     # Do the boxes show a body other than the cuboid? The template fit's departure from the cuboid, against
     # its own uncertainty (chi-square, 6 dof).
     rejection = cuboid_rejection(fit, vehicle)

@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from statistics import NormalDist
 
 import numpy as np
 from scipy.optimize import least_squares, nnls
@@ -149,6 +150,23 @@ class ModelParams:
     # simulator's cuboid boxes (its drifting IMU poses give more than the 6 expected), 196-1976 on shaped
     # bodies (8 scenes); p = 1e-19 at 100.
     cuboid_rejection_chi2: float = 100.0
+    # The vehicle's height per drive-past. GNSS heights wander by several centimetres over minutes (RTK:
+    # 2-5 cm 1 sigma, correlated over tens of seconds), so drive-pasts minutes apart sit at heights that
+    # differ by about as much; for a camera looking along the road such a difference between drive-pasts in
+    # different lanes is the same image change as a roll. With `drive_past_heights` each drive-past (tracks
+    # within TRAVERSAL_GAP_S) gets its own height offset, prior 0 +- drive_past_height_std_m, fitted with the
+    # pose; final_fit.joint_fit tries them with `try_drive_past_heights` and keeps them only where the boxes
+    # ask for them (heights_chi2_p). Off by default: measured on the core presets they moved poses both
+    # ways with the mean error unchanged (docs/method.md, "What limits it"); the realistic world's false
+    # accepts over all presets are not measured with them yet.
+    try_drive_past_heights: bool = False
+    drive_past_heights: bool = False
+    drive_past_height_std_m: float = 0.1
+    # The offsets are kept when their chi-square against their own covariance exceeds the (1 - p) quantile
+    # of chi-square with one degree of freedom per drive-past, and never with fewer than
+    # min_height_drive_pasts (with two, their difference trades with a turn of the camera).
+    heights_chi2_p: float = 0.01
+    min_height_drive_pasts: int = 3
 
     def prior_std(self) -> FloatArray:
         return np.array(
@@ -160,6 +178,10 @@ class ModelParams:
             + [self.grow_std_px] * 2
             + [self.readout_std_s]
         )
+
+    def height_count(self, drive_pasts: int) -> int:
+        """How many height offsets a fit of `drive_pasts` drive-pasts has: one each, or none."""
+        return drive_pasts if self.drive_past_heights else 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -201,6 +223,23 @@ class ModelFit:
     rho: float = 0.0  # residual correlation from frame to frame
     readout_s: float = 0.0
     readout_std_s: float = 0.0
+    # With ModelParams.drive_past_heights: each drive-past's height offset (K,) m and its std, and the
+    # drive-past's first and last box stamp (K, 2) ns (by which _model_of gives other boxes their offset).
+    height_offsets_m: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
+    height_offsets_std_m: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
+    drive_past_spans_ns: IntArray = field(
+        default_factory=lambda: np.zeros((0, 2), dtype=np.int64), repr=False
+    )
+
+    def heights_chi2(self) -> float:
+        """Chi-square (one dof per drive-past) of the height offsets against their own covariance (the
+        marginal block of the full one); 0 without offsets."""
+        k = len(self.height_offsets_m)
+        if k == 0:
+            return 0.0
+        block = self.full_covariance[N_PARAMS:, N_PARAMS:]
+        offsets = self.height_offsets_m
+        return max(float(offsets @ _inverse(block) @ offsets), 0.0)
 
     def footprint_body_frame(self, vehicle: VehicleProfile) -> FloatArray:
         """The fitted template's contact with the road: the wheels' rectangle (4, 3), vehicle box frame."""
@@ -295,6 +334,8 @@ class _Data:
     # shutter's box at readout r shows edge k at boxes[:, k] - r * skew[:, k] had every row been exposed
     # with the centre's.
     skew: FloatArray
+    drive_past: IntArray  # (N,) each box's drive-past, an index into drive_past_spans_ns
+    drive_past_spans_ns: IntArray  # (K, 2) first and last stamp of each drive-past, in time order
 
     def corrected(self, readout_s: float) -> Boxes:
         """The boxes as if every row had been exposed with the box centre's (see `skew`)."""
@@ -315,21 +356,29 @@ def fit_vehicle_model(
     if not tracks or sum(len(t.boxes) for t in tracks) == 0:
         raise DegenerateGeometry("joint fit: no boxes")
     data = _data_of(tracks, sampler, camera, params)
-    if int(data.used.sum()) < 2 * N_PARAMS:
-        raise DegenerateGeometry(
-            f"joint fit: {int(data.used.sum())} unclipped box edges, need >= {2 * N_PARAMS}"
-        )
+    heights = params.height_count(len(data.drive_past_spans_ns))
+    needed = 2 * (N_PARAMS + heights)
+    if int(data.used.sum()) < needed:
+        raise DegenerateGeometry(f"joint fit: {int(data.used.sum())} unclipped box edges, need >= {needed}")
     R0 = np.asarray(R_cam_from_local, dtype=np.float64)
     C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
-    mean = np.zeros(N_PARAMS)
+    mean = np.zeros(N_PARAMS + heights)
     mean[_SHAPE] = cuboid_shape(vehicle)
     mean[_READOUT] = params.readout_s
-    prior_std = params.prior_std()
-    model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
+    model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, _prior_std(params, heights))
     model.set_skew(mean)
     scene_range = _scene_range(model, C0)
     x_scale = np.concatenate(
-        [[1.0 / scene_range] * 3, [1.0] * 3, [0.05], [0.1] * len(SHAPE_NAMES), [0.01], [1.0] * 4, [0.01]]
+        [
+            [1.0 / scene_range] * 3,
+            [1.0] * 3,
+            [0.05],
+            [0.1] * len(SHAPE_NAMES),
+            [0.01],
+            [1.0] * 4,
+            [0.01],
+            [0.05] * heights,
+        ]
     )
     # Two passes: the data rows are weighted against the priors and each other by the residuals' effective
     # std (per edge and box size, times the square root of their correlation's variance inflation), which
@@ -377,6 +426,7 @@ class _Model:
         self.data, self.sampler, self.R0, self.C0 = data, sampler, R0, C0
         self.camera, self.vehicle, self.params = camera, vehicle, params
         self.mean = mean
+        self.heights = len(mean) - N_PARAMS  # height offsets (ModelParams.drive_past_heights) at the end
         self.has_prior = np.isfinite(prior_std)
         self.prior_weight = np.where(self.has_prior, 1.0 / np.where(self.has_prior, prior_std, 1.0), 0.0)
         self.prior_jacobian = np.diag(self.prior_weight)[self.has_prior]  # constant: the priors are linear
@@ -454,7 +504,10 @@ class _Model:
     def poses_at(self, x: FloatArray) -> FloatArray:
         """The vehicle's pose (N, 6) when each box's centre row was exposed: its stamp minus the time shift
         (of the image's middle row), plus the readout's share from there to the box centre's row."""
-        return self.sampler.at(self.data.t_s - x[_DELTA] + x[_READOUT] * self.data.row_share)
+        poses = self.sampler.at(self.data.t_s - x[_DELTA] + x[_READOUT] * self.data.row_share)
+        if self.heights:
+            poses[:, 2] += x[N_PARAMS:][self.data.drive_past]
+        return poses
 
     # Raw tight boxes of the template and the points forming their edges.
     def raw(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation]:
@@ -544,7 +597,7 @@ class _Model:
         model = self._cache["model"]
         bi, ei = self.box_index, self.edge_index
         m = len(bi)
-        J = np.zeros((m, N_PARAMS))
+        J = np.zeros((m, N_PARAMS + self.heights))
         # Pose: the edge-forming point's projection (analytic), through the bias transform.
         s = x[_BIAS][0]
         axis = np.array([0, 1, 0, 1])
@@ -571,6 +624,12 @@ class _Model:
         # Bias: analytic.
         J[:, _BIAS.start] = ((raw - raw[:, opposite]) / 2.0)[bi, ei]
         J[:, _BIAS.start + 1 : _BIAS.stop] = _OFFSET_FROM_BIAS[ei]
+        if self.heights:  # every box raised at once: each box's change goes to its drive-past's column
+            xp = x.copy()
+            xp[N_PARAMS:] += step
+            raw_p, _, _, _ = self.raw(xp)
+            change = (self.biased(raw_p, x[_BIAS])[bi, ei] - model[bi, ei]) / step
+            J[np.arange(m), N_PARAMS + self.data.drive_past[bi]] = change
         self._cache["J"] = np.vstack([J / self.data_scale[:, None], self.prior_jacobian])
 
     def residuals(self, x: FloatArray) -> FloatArray:
@@ -605,7 +664,7 @@ def _assemble(
     cluster = cluster.ravel()
     clusters = int(cluster.max()) + 1
     scores = (weights * r)[:, None] * Js
-    sums = np.zeros((clusters, N_PARAMS))
+    sums = np.zeros((clusters, J_all.shape[1]))
     np.add.at(sums, cluster, scores)
     correction = clusters / max(clusters - 1, 1)
     B = correction * (sums.T @ sums) + prior_info
@@ -658,6 +717,9 @@ def _assemble(
         rho=model.rho,
         readout_s=float(x[_READOUT]),
         readout_std_s=float(stds[_READOUT]),
+        height_offsets_m=x[N_PARAMS:].copy(),
+        height_offsets_std_m=stds[N_PARAMS:].copy(),
+        drive_past_spans_ns=data.drive_past_spans_ns if model.heights else np.zeros((0, 2), dtype=np.int64),
     )
 
 
@@ -675,7 +737,7 @@ def _normal_matrix(
     units (rotation scaled by the scene range): (Js the data rows' Jacobian in those units, the scale per
     parameter, A = Js^T W Js + prior information, the prior information)."""
     m = model.data_rows
-    scale = np.ones(N_PARAMS)
+    scale = np.ones(J_all.shape[1])
     scale[:3] = scene_range
     Js = J_all[:m] / scale
     Jp = J_all[m:] / scale
@@ -1104,7 +1166,10 @@ def _holdout_statistic(
     inv_d = 1.0 / sigma**2
     # Each drive-past's positions carry their own GNSS offset (pose_bias_std_m per axis): to the boxes of
     # the left-out one it looks like a shift of the camera centre, so it joins the prediction's covariance.
-    S = loo.full_covariance.copy()
+    # With height offsets, the left-out drive-pasts' own are unknown to the others: their prior.
+    S = np.zeros((len(x), len(x)))
+    S[:N_PARAMS, :N_PARAMS] = loo.full_covariance[:N_PARAMS, :N_PARAMS]
+    S[N_PARAMS:, N_PARAMS:] = params.drive_past_height_std_m**2 * np.eye(len(x) - N_PARAMS)
     S[3:6, 3:6] += params.pose_bias_std_m**2 * np.eye(3)
     inner = _inverse(_inverse(S) + J.T @ (inv_d[:, None] * J))
 
@@ -1169,13 +1234,42 @@ def _model_of(
     vector there (pose part zero: the model is built around the fit's pose)."""
     sampler = PoseSampler.of(trajectory)
     data = _data_of(tracks, sampler, camera, params)
-    x = np.zeros(N_PARAMS)
+    heights = params.height_count(len(data.drive_past_spans_ns))
+    x = np.zeros(N_PARAMS + heights)
     x[_DELTA], x[_SHAPE], x[_BIAS], x[_READOUT] = fit.time_shift_s, fit.shape, fit.bias, fit.readout_s
+    x[N_PARAMS:] = _offsets_for(fit, data.drive_past_spans_ns[:heights])
     model = _Model(
-        data, sampler, fit.R_cam_from_local, fit.camera_centre, camera, vehicle, params, x, params.prior_std()
+        data,
+        sampler,
+        fit.R_cam_from_local,
+        fit.camera_centre,
+        camera,
+        vehicle,
+        params,
+        x,
+        _prior_std(params, heights),
     )
     model.set_skew(x)
     return model, x
+
+
+def _prior_std(params: ModelParams, heights: int) -> FloatArray:
+    """The prior stds of a parameter vector with `heights` height offsets at its end."""
+    return np.concatenate([params.prior_std(), [params.drive_past_height_std_m] * heights])
+
+
+def _offsets_for(fit: ModelFit, spans_ns: IntArray) -> FloatArray:
+    """Height offsets (K,) for drive-pasts spanning `spans_ns` (K, 2): the fit's offset of the drive-past
+    it fitted at that time (within TRAVERSAL_GAP_S), else 0 (a drive-past the fit did not see: its height
+    is known only to the prior)."""
+    offsets = np.zeros(len(spans_ns))
+    gap_ns = int(TRAVERSAL_GAP_S * 1e9)
+    for k, (first, last) in enumerate(spans_ns):
+        for (fit_first, fit_last), offset in zip(fit.drive_past_spans_ns, fit.height_offsets_m, strict=True):
+            if first <= fit_last + gap_ns and last >= fit_first - gap_ns:
+                offsets[k] = offset
+                break
+    return offsets
 
 
 def _data_of(
@@ -1184,6 +1278,7 @@ def _data_of(
     """The tracks' boxes stacked, with their times on the sampler's clock and the unclipped edges."""
     boxes = np.concatenate([np.asarray(t.boxes, dtype=np.float64) for t in tracks])
     stamps = np.concatenate([np.asarray(t.stamps, dtype=np.int64) for t in tracks])
+    drive_past, spans = _drive_pasts(tracks, TRAVERSAL_GAP_S)
     return _Data(
         boxes=boxes,
         t_s=sampler.seconds(stamps),
@@ -1192,7 +1287,26 @@ def _data_of(
         track_ids=np.concatenate([np.full(len(t.boxes), t.track_id, dtype=np.int64) for t in tracks]),
         stamps=stamps,
         used=~_clipped_edges(boxes, camera, params.border_margin_px),
+        drive_past=np.repeat(drive_past, [len(t.boxes) for t in tracks]),
+        drive_past_spans_ns=spans,
     )
+
+
+def _drive_pasts(tracks: Sequence[MatchedTrack], gap_s: float) -> tuple[IntArray, IntArray]:
+    """Each track's drive-past (K,), an index in time order, and the drive-pasts' first and last stamps
+    (K, 2) ns: tracks within gap_s of the ones before belong to their drive-past (_traversal_clusters)."""
+    index = np.zeros(len(tracks), dtype=np.int64)
+    spans: list[list[int]] = []
+    end: int | None = None
+    seen = [i for i, t in enumerate(tracks) if len(t.stamps)]
+    for i in sorted(seen, key=lambda i: int(tracks[i].stamps[0])):
+        first, last = int(tracks[i].stamps[0]), int(tracks[i].stamps[-1])
+        if end is None or first - end > gap_s * 1e9:
+            spans.append([first, last])
+        spans[-1][1] = max(spans[-1][1], last)
+        index[i] = len(spans) - 1
+        end = max(end or 0, last)
+    return index, np.array(spans, dtype=np.int64).reshape(-1, 2)
 
 
 def _row_shares(boxes: Boxes, camera: CameraModel) -> FloatArray:
@@ -1282,12 +1396,11 @@ def consider_moves(
     the template still landed 0.15-0.5 m / 0.1-0.45 deg off with a sandwich std of 0.07-0.1 m / 0.09-0.12
     deg); last, with `readout_std_s`, the readout moved by that std, for a fit that held it (a readout the
     data could not tell from 0 is known only to their std). (0, N_PARAMS) when every std is 0."""
-    empty = np.zeros((0, N_PARAMS))
     if point_std_m <= 0.0 and shift_std_px <= 0.0 and readout_std_s <= 0.0:
-        return empty
+        return np.zeros((0, N_PARAMS + len(fit.height_offsets_m)))
     model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
-    if model.data_rows < 2 * N_PARAMS:
-        return empty
+    if model.data_rows < 2 * len(x):
+        return np.zeros((0, len(x)))
     if readout_std_s > 0.0:
         model.set_skew(x, always=True)  # the readout moves the edges apart as well as the box's time
     model.weigh(x)  # the rows weighted as the fit's second pass weighted them
@@ -1332,6 +1445,47 @@ def _displaced_point_changes(
     boxes = np.stack([model.biased(b, x[_BIAS]) for b in raw.reshape(3 * k + 1, n, 4)])
     bi, ei = model.box_index, model.edge_index
     return np.asarray(boxes[1:, bi, ei] - boxes[0, bi, ei], dtype=np.float64)
+
+
+def with_drive_past_heights(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> tuple[ModelFit, ModelParams]:
+    """With ModelParams.try_drive_past_heights, the fit again with a height offset per drive-past
+    (ModelParams.drive_past_heights), started from it, where the boxes ask for them: at least
+    min_height_drive_pasts drive-pasts, the refit converged and its offsets' chi-square (one dof each)
+    beyond the (1 - heights_chi2_p) quantile. Else `fit` and `params` unchanged: where the heights agree
+    (the first simulator's IMU poses, post-processed tracks) the freedom would only widen the covariance
+    and move the pose in a flat valley."""
+    drive_pasts = len(_drive_pasts(tracks, TRAVERSAL_GAP_S)[1])
+    if (
+        not params.try_drive_past_heights
+        or params.drive_past_heights
+        or drive_pasts < params.min_height_drive_pasts
+    ):
+        return fit, params
+    heights = replace(params, drive_past_heights=True)
+    try:
+        refit = fit_vehicle_model(
+            fit.R_cam_from_local, fit.t_cam_from_local, tracks, trajectory, camera, vehicle, heights
+        )
+    except DegenerateGeometry:
+        return fit, params
+    if not refit.converged or refit.heights_chi2() <= chi2_quantile(params.heights_chi2_p, drive_pasts):
+        return fit, params
+    return refit, heights
+
+
+def chi2_quantile(upper: float, dof: int) -> float:
+    """The value a chi-square of `dof` degrees of freedom exceeds with probability `upper` (Wilson and
+    Hilferty's cube-root normal approximation: within 1 % of the exact quantile from 3 dof at p = 0.01)."""
+    z = NormalDist().inv_cdf(1.0 - upper)
+    a = 2.0 / (9.0 * dof)
+    return float(dof * (1.0 - a + z * math.sqrt(a)) ** 3)
 
 
 def cuboid_rejection(fit: ModelFit, vehicle: VehicleProfile) -> float:
