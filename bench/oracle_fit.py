@@ -11,7 +11,9 @@ the pose error is what the model (body template, detector convention) and the ve
 --poses true: the simulator's noise-free poses (with pitch and roll); cam: the poses rsucal would use, from
 the vehicle's CAMs (GNSS errors, no pitch or roll: pitch from the path as the pipeline takes it);
 --true-heights: the CAM poses with the true heights put in (what the GNSS height costs); --hold-z-low: the
-template's lower rectangle held at the road (its height is what trades with the vehicle's).
+template's lower rectangle held at the road (its height is what trades with the vehicle's); --height-noise
+(with --poses true): the true heights with noise added, `white` (3 cm a pose) or `wander` (6 cm, correlated
+over 60 s), drawn from a generator seeded by the scene's seed (what height noise alone does to the pose).
 """
 
 from __future__ import annotations
@@ -25,7 +27,12 @@ import numpy as np
 
 
 def fit_errors(
-    preset: str, seed: int, poses: str, true_heights: bool, hold_z_low: bool = False
+    preset: str,
+    seed: int,
+    poses: str,
+    true_heights: bool,
+    hold_z_low: bool = False,
+    height_noise: str | None = None,
 ) -> list[dict[str, object]]:
     """One record per camera that saw the vehicle in at least 50 frames."""
     from bench.common import inputs_for
@@ -55,6 +62,10 @@ def fit_errors(
         # Trajectory stamps on the boxes' clock: the true instants plus the camera's latency.
         true_stamps = sim.true_stamps.astype(np.int64) + truth.latency_ns
         trajectory = Trajectory(true_stamps, sim.true_poses.copy())
+        if height_noise is not None:
+            noisy = sim.true_poses.copy()
+            noisy[:, 2] += height_errors(true_stamps, height_noise, np.random.default_rng([seed, 7]))
+            trajectory = Trajectory(true_stamps, noisy)
         if poses == "cam":
             # As the pipeline builds it (make_trajectory: sorted, on the camera clock), then on the boxes'.
             inputs = inputs_for(sim, camera.camera_id)
@@ -90,6 +101,20 @@ def fit_errors(
     return records
 
 
+def height_errors(stamps_ns: np.ndarray, kind: str, rng: np.random.Generator) -> np.ndarray:
+    """Height errors (m) at the stamps: `white` 3 cm each, or `wander` a first-order Gauss-Markov process of
+    6 cm std and 60 s correlation time (the realistic world's RTK height wander, sim/v2x.py)."""
+    if kind == "white":
+        return rng.normal(0.0, 0.03, len(stamps_ns))
+    t_s = (stamps_ns - stamps_ns[0]).astype(np.float64) / 1e9
+    keep = np.exp(-np.diff(t_s, prepend=t_s[0]) / 60.0)
+    errors = np.zeros(len(t_s))
+    errors[0] = rng.normal(0.0, 0.06)
+    for i in range(1, len(t_s)):
+        errors[i] = keep[i] * errors[i - 1] + 0.06 * math.sqrt(1.0 - keep[i] ** 2) * rng.normal()
+    return errors
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.oracle_fit", description=__doc__.split("\n\n")[0])
     parser.add_argument("--presets", default="sil-north,sil-south,sil-west,slope,van")
@@ -97,12 +122,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--poses", choices=("true", "cam"), default="cam")
     parser.add_argument("--true-heights", action="store_true", help="--poses cam with the true heights")
     parser.add_argument("--hold-z-low", action="store_true", help="the template's lower rectangle at 0 m")
+    parser.add_argument(
+        "--height-noise", choices=("white", "wander"), help="--poses true: noise on the heights"
+    )
     args = parser.parse_args(argv)
+    if args.height_noise and args.poses != "true":
+        parser.error("--height-noise goes with --poses true")
     records = [
         record
         for preset in args.presets.split(",")
         for seed in (int(s) for s in args.seeds.split(","))
-        for record in fit_errors(preset, seed, args.poses, args.true_heights, args.hold_z_low)
+        for record in fit_errors(
+            preset, seed, args.poses, args.true_heights, args.hold_z_low, args.height_noise
+        )
     ]
     for r in records:
         print(
