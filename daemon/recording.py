@@ -777,7 +777,10 @@ def _scan_messages(
             first_ns, last_ns = _CHUNK_TIMES.unpack(stream.read(_CHUNK_TIMES.size))
             if last_ns < log_range[0] or first_ns > log_range[1]:
                 scan.skipped_chunks += 1
-                offset = end
+                # Stepped over as if read: a resynchronisation after a corrupt record that follows must
+                # not search from before it again (found intact, skipped again: it looped for ever).
+                read_until = max(read_until, end)
+                previous_offset, offset = offset, end
                 stream.seek(offset)
                 continue
             stream.seek(offset + _RECORD_HEAD.size)

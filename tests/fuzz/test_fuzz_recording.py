@@ -158,6 +158,27 @@ def test_read_window_of_a_corrupted_file(
     assert all(start_ns <= m.stamp_ns <= end_ns for m in [*window.detections, *window.v2x])
 
 
+def test_a_window_past_a_skipped_chunk_and_a_broken_record_ends() -> None:
+    """Found by test_read_window_of_a_corrupted_file (it hung): with no verified summary and a stamp skew
+    bound (chunks whose log times lie outside the window are stepped over), a chunk stepped over, then a
+    record after it with a corrupt length. The resynchronisation searched from before the skipped chunk,
+    found it intact, stepped over it again, and so on for ever."""
+    rec = small_recording()
+    data = bytearray(rec.data)
+    after = rec.chunk_ranges[2][1]  # the record right after the third chunk
+    data[after + 8] ^= 0x40  # its length's high byte: far past the end of the file
+    data[rec.summary_start + 20] ^= 0xFF  # the summary no longer matches its CRC
+    path = DIR / "skipped.mcap"
+    path.write_bytes(bytes(data))
+    first = rec.chunk_messages[0]  # the window: the first chunk's messages, read; the next ones stepped over
+    start_ns, end_ns = min(m.stamp_ns for m in first), max(m.stamp_ns for m in first)
+    window = read_window([path], rec.rsu_id, None, None, start_ns, end_ns, max_stamp_skew_ns=50_000_000)
+    edits = [(after + 8, 0x40), (rec.summary_start + 20, 0xFF)]
+    expected = {m.id for m in kept(rec, edits) if start_ns <= m.stamp_ns <= end_ns}
+    assert expected  # the window's chunk is intact: this checks the reading, not only that it ends
+    check_recovered(rec, ids_of([*window.detections, *window.v2x]), expected)
+
+
 @fuzz_settings()
 @given(edits=flips, since=st.floats(0.0, 1.0) | st.just(0.0))
 def test_restart_recovery_of_a_corrupted_file(edits: list[tuple[float | int, int]], since: float) -> None:
