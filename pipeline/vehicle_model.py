@@ -1293,19 +1293,12 @@ def _data_of(
 
 
 def _drive_pasts(tracks: Sequence[MatchedTrack], gap_s: float) -> tuple[IntArray, IntArray]:
-    """Each track's drive-past (K,), an index in time order, and the drive-pasts' first and last stamps
-    (K, 2) ns: tracks within gap_s of the ones before belong to their drive-past (_traversal_clusters)."""
-    index = np.zeros(len(tracks), dtype=np.int64)
-    spans: list[list[int]] = []
-    end: int | None = None
-    seen = [i for i, t in enumerate(tracks) if len(t.stamps)]
-    for i in sorted(seen, key=lambda i: int(tracks[i].stamps[0])):
-        first, last = int(tracks[i].stamps[0]), int(tracks[i].stamps[-1])
-        if end is None or first - end > gap_s * 1e9:
-            spans.append([first, last])
-        spans[-1][1] = max(spans[-1][1], last)
-        index[i] = len(spans) - 1
-        end = max(end or 0, last)
+    """Each track's drive-past (K,), an index in time order (_traversal_clusters), and the drive-pasts' first
+    and last stamps (K, 2) ns."""
+    clusters = _traversal_clusters([t for t in tracks if len(t.stamps)], gap_s)
+    which = {id(t): k for k, cluster in enumerate(clusters) for t in cluster}
+    index = np.array([which.get(id(t), 0) for t in tracks], dtype=np.int64)
+    spans = [[int(c[0].stamps[0]), max(int(t.stamps[-1]) for t in c)] for c in clusters]
     return index, np.array(spans, dtype=np.int64).reshape(-1, 2)
 
 
