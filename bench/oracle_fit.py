@@ -12,8 +12,9 @@ the pose error is what the model (body template, detector convention) and the ve
 the vehicle's CAMs (GNSS errors, no pitch or roll: pitch from the path as the pipeline takes it);
 --true-heights: the CAM poses with the true heights put in (what the GNSS height costs); --hold-z-low: the
 template's lower rectangle held at the road (its height is what trades with the vehicle's); --height-noise
-(with --poses true): the true heights with noise added, `white` (3 cm a pose) or `wander` (6 cm, correlated
-over 60 s), drawn from a generator seeded by the scene's seed (what height noise alone does to the pose).
+(with --poses true): the true heights with noise added, the realistic world's vertical GNSS white noise
+(`white`, 3 cm a pose) or wander (`wander`, 6 cm correlated over 60 s: sim.v2x.GnssSpec's RTK fixed
+receiver), drawn from a generator seeded by the scene's seed (what height noise alone does to the pose).
 """
 
 from __future__ import annotations
@@ -61,11 +62,10 @@ def fit_errors(
             tracks.append(MatchedTrack(traversal, stamps, boxes, np.zeros((len(stamps), 6))))
         # Trajectory stamps on the boxes' clock: the true instants plus the camera's latency.
         true_stamps = sim.true_stamps.astype(np.int64) + truth.latency_ns
-        trajectory = Trajectory(true_stamps, sim.true_poses.copy())
+        true_poses = sim.true_poses.copy()
         if height_noise is not None:
-            noisy = sim.true_poses.copy()
-            noisy[:, 2] += height_errors(true_stamps, height_noise, np.random.default_rng([seed, 7]))
-            trajectory = Trajectory(true_stamps, noisy)
+            true_poses[:, 2] += height_errors(true_stamps, height_noise, np.random.default_rng([seed, 7]))
+        trajectory = Trajectory(true_stamps, true_poses)
         if poses == "cam":
             # As the pipeline builds it (make_trajectory: sorted, on the camera clock), then on the boxes'.
             inputs = inputs_for(sim, camera.camera_id)
@@ -102,17 +102,17 @@ def fit_errors(
 
 
 def height_errors(stamps_ns: np.ndarray, kind: str, rng: np.random.Generator) -> np.ndarray:
-    """Height errors (m) at the stamps: `white` 3 cm each, or `wander` a first-order Gauss-Markov process of
-    6 cm std and 60 s correlation time (the realistic world's RTK height wander, sim/v2x.py)."""
+    """Height errors (m) at the stamps, as the realistic world's RTK fixed receiver makes them vertically
+    (sim.v2x.GnssSpec, its horizontal sigmas times vertical_factor): `white` independent per stamp, or
+    `wander` its first-order Gauss-Markov process."""
+    from sim.v2x import GnssSpec, gauss_markov
+
+    spec = GnssSpec.rtk_fixed()
     if kind == "white":
-        return rng.normal(0.0, 0.03, len(stamps_ns))
+        return rng.normal(0.0, spec.white_sigma_m * spec.vertical_factor, len(stamps_ns))
     t_s = (stamps_ns - stamps_ns[0]).astype(np.float64) / 1e9
-    keep = np.exp(-np.diff(t_s, prepend=t_s[0]) / 60.0)
-    errors = np.zeros(len(t_s))
-    errors[0] = rng.normal(0.0, 0.06)
-    for i in range(1, len(t_s)):
-        errors[i] = keep[i] * errors[i - 1] + 0.06 * math.sqrt(1.0 - keep[i] ** 2) * rng.normal()
-    return errors
+    sigma = spec.wander_sigma_m * spec.vertical_factor
+    return np.asarray(gauss_markov(t_s, sigma, spec.wander_tau_s, 1, rng)[:, 0], dtype=np.float64)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

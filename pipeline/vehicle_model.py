@@ -156,9 +156,10 @@ class ModelParams:
     # different lanes is the same image change as a roll. With `drive_past_heights` each drive-past (tracks
     # within TRAVERSAL_GAP_S) gets its own height offset, prior 0 +- drive_past_height_std_m, fitted with the
     # pose; final_fit.joint_fit tries them with `try_drive_past_heights` and keeps them only where the boxes
-    # ask for them (heights_chi2_p). Off by default: measured on the core presets they moved poses both
-    # ways with the mean error unchanged (docs/method.md, "What limits it"); the realistic world's false
-    # accepts over all presets are not measured with them yet.
+    # ask for them (heights_chi2_p). Off by default: on the realistic core presets they moved poses both
+    # ways with the mean error unchanged, and the first simulator's drifting IMU poses pass the test too
+    # (its largest accepted error 0.20 -> 0.25 m; docs/method.md, "What limits it"); the realistic
+    # world's false accepts over all presets are not measured with them yet.
     try_drive_past_heights: bool = False
     drive_past_heights: bool = False
     drive_past_height_std_m: float = 0.1

@@ -156,7 +156,7 @@ def _check_inputs(t_s: FloatArray, position: FloatArray, yaw: FloatArray, speed_
     return n
 
 
-def _gauss_markov(
+def gauss_markov(
     t_s: FloatArray, sigma: float, tau_s: float, dims: int, rng: np.random.Generator
 ) -> FloatArray:
     """First-order Gauss-Markov samples (N, dims) at irregular instants, started in its stationary law.
@@ -265,7 +265,7 @@ def measure_gnss(
     per_axis = np.array([1.0, 1.0, spec.vertical_factor])
 
     bias = rng.standard_normal(3) * spec.bias_sigma_m * per_axis
-    wander = _gauss_markov(t_s, spec.wander_sigma_m, spec.wander_tau_s, 3, rng) * per_axis
+    wander = gauss_markov(t_s, spec.wander_sigma_m, spec.wander_tau_s, 3, rng) * per_axis
     white = rng.standard_normal((n, 3)) * spec.white_sigma_m * per_axis
     multipath = _multipath(t_s, spec, rng)
     float_error, float_level = _rtk_float(t_s, spec, rng)
@@ -283,7 +283,7 @@ def measure_gnss(
     with np.errstate(divide="ignore", invalid="ignore"):
         course_sigma = np.hypot(math.radians(spec.heading_sigma_deg), spec.velocity_sigma_mps / ground_speed)
     course_noise = (
-        _gauss_markov(t_s, 1.0, spec.course_noise_tau_s, 1, rng)[:, 0]
+        gauss_markov(t_s, 1.0, spec.course_noise_tau_s, 1, rng)[:, 0]
         if spec.course_noise_tau_s > 0.0
         else rng.standard_normal(n)
     )
