@@ -79,7 +79,10 @@ class Lens:
         pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
         if len(pixels) == 0:
             return np.zeros((0, 2))
-        xy = cv2.undistortPoints(pixels, self.K, self.dist, criteria=_UNDISTORT_CRITERIA)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4: the stopping criterion is its own function's
+            xy = cv2.undistortPointsIter(pixels, self.K, self.dist, None, None, _UNDISTORT_CRITERIA)
+        else:  # OpenCV 5 folded it into undistortPoints
+            xy = cv2.undistortPoints(pixels, self.K, self.dist, criteria=_UNDISTORT_CRITERIA)
         return np.asarray(xy, dtype=np.float64).reshape(-1, 2)
 
     def view_bounds(self) -> FloatArray:
