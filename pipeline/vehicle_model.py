@@ -358,15 +358,26 @@ def fit_vehicle_model(
         raise DegenerateGeometry("joint fit: no boxes")
     data = _data_of(tracks, sampler, camera, params)
     heights = params.height_count(len(data.drive_past_spans_ns))
-    needed = 2 * (N_PARAMS + heights)
-    if int(data.used.sum()) < needed:
-        raise DegenerateGeometry(f"joint fit: {int(data.used.sum())} unclipped box edges, need >= {needed}")
     R0 = np.asarray(R_cam_from_local, dtype=np.float64)
     C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
     mean = np.zeros(N_PARAMS + heights)
     mean[_SHAPE] = cuboid_shape(vehicle)
     mean[_READOUT] = params.readout_s
     model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, _prior_std(params, heights))
+    # A box whose vehicle the start puts partly behind the camera has no tight box in the model: its clamped
+    # projection misses by up to 10^5 px with a Jacobian to match, and even a robust loss lets such rows
+    # drag the pose off (an identity switch onto another car while the calibration vehicle had driven
+    # under and past the camera: an exact scene's fit from the true pose ended 14 m off). Its edges are
+    # left out of the fit, as clipped ones are (NaN residuals: fit_trimmed then drops the box).
+    behind = model.behind_camera(mean)
+    if behind.any():
+        data = replace(data, used=data.used & ~behind[:, None])
+        model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, _prior_std(params, heights))
+    needed = 2 * (N_PARAMS + heights)
+    if int(data.used.sum()) < needed:
+        raise DegenerateGeometry(
+            f"joint fit: {int(data.used.sum())} unclipped box edges in front of the camera, need >= {needed}"
+        )
     model.set_skew(mean)
     scene_range = _scene_range(model, C0)
     x_scale = np.concatenate(
@@ -509,6 +520,12 @@ class _Model:
         if self.heights:
             poses[:, 2] += x[N_PARAMS:][self.data.drive_past]
         return poses
+
+    def behind_camera(self, x: FloatArray) -> BoolArray:
+        """(N,) whether any template point of the box's vehicle at x lies nearer the camera plane than
+        `min_depth_m` (or behind it), where `_project` clamps it."""
+        _, cam, _, _ = self.raw(x)
+        return np.asarray((cam[..., 2] < self.params.min_depth_m).any(axis=1), dtype=np.bool_)
 
     # Raw tight boxes of the template and the points forming their edges.
     def raw(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation]:

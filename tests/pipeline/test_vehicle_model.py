@@ -468,6 +468,33 @@ def test_the_left_out_and_half_fits_run_in_a_process_pool_with_identical_results
     assert pooled_check.disagreeing == serial_check.disagreeing
 
 
+def test_boxes_of_another_car_while_the_vehicle_is_behind_the_camera_do_not_drag_the_fit():
+    # A tracker's identity switch: after its drive-past the calibration vehicle drives on behind the camera,
+    # while the track follows another car through the image (boxes like a drive-past's). Clamped at the
+    # camera plane, the model's boxes there miss by up to 10^5 px; a fit from the true pose must leave those
+    # boxes out, not walk off to meet them (carla-like seed 1 ended 14 m off before).
+    trajectory, tracks = _scene()
+    behind = _drive(90.0, (-12.0, -14.0), math.radians(90.0), 7.0, 0.0, 5.0)
+    trajectory = Trajectory(
+        stamps=np.concatenate([trajectory.stamps, behind[0]]),
+        poses=np.concatenate([trajectory.poses, behind[1]]),
+    )
+    other = tracks[1]
+    stamps = behind[0][5:-5][: len(other.stamps)] + 3_000_000
+    switched = MatchedTrack(3, stamps, other.boxes[: len(stamps)], np.zeros((len(stamps), 6)))
+    truth = np.zeros(N_PARAMS)
+    truth[_DELTA], truth[_SHAPE], truth[_BIAS] = SHIFT_TRUE_S, SHAPE_TRUE, BIAS_TRUE
+    sampler = PoseSampler(trajectory)
+    data = _data_from([switched], sampler)
+    model = _Model(data, sampler, R_TRUE, C_TRUE, CAMERA, VEHICLE, FLAT, truth, FLAT.prior_std())
+    assert model.behind_camera(truth).all()  # the scene is what the test says
+    R = R_TRUE
+    fit, used = fit_trimmed(R, -R @ C_TRUE, [*tracks, switched], trajectory, CAMERA, VEHICLE, FLAT)
+    assert np.linalg.norm(fit.camera_centre - C_TRUE) < 1e-3
+    assert math.degrees(rotation_angle_rad(fit.R_cam_from_local, R_TRUE)) < 1e-3
+    assert [t.track_id for t in used] == [0, 1, 2]  # the switched boxes are dropped
+
+
 def test_too_few_edges_is_degenerate():
     trajectory, tracks = _scene()
     short = [MatchedTrack(0, tracks[0].stamps[:3], tracks[0].boxes[:3], tracks[0].poses[:3])]
