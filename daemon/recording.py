@@ -211,6 +211,9 @@ class RecordingWriter:
         self._finished = False
         library = f"rsucal {__version__}; python mcap {mcap.__version__}"
         self._append(MCAP_MAGIC + _record_bytes(Header(profile="", library=library)))
+        # On disk at once: a new file is a valid (empty) recording from its first microsecond, not 0 bytes
+        # of "not an MCAP file" to a reader listing the directory (or after a crash) until the first flush.
+        self._file.flush()
 
     @property
     def channel_count(self) -> int:

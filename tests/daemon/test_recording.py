@@ -23,6 +23,7 @@ from daemon.recording import (
     Recording,
     RecordingWriter,
     read_recording,
+    read_window,
     write_simulation_mcap,
 )
 from pipeline.errors import RecordingError
@@ -179,6 +180,20 @@ def test_empty_but_finished_recording_is_valid(tmp_path: Path) -> None:
     assert (
         recording.detections == {} and recording.v2x == [] and recording.rsu_id is None and recording.complete
     )
+
+
+def test_a_new_recording_is_an_mcap_file_before_anything_is_written(tmp_path: Path) -> None:
+    # Its magic and header are on disk when the writer is made: a job reading the directory (or a crash)
+    # finds an empty recording in writing, not 0 bytes that are "not an MCAP file".
+    path = tmp_path / "rec.mcap"
+    writer = RecordingWriter(path)
+    try:
+        window = read_window([path], "rsu-1", None, None, 0, 2**63 - 1)
+        assert window.detections == [] and window.v2x == []
+        [problem] = window.problems
+        assert "without a footer (truncated; not finished)" in problem
+    finally:
+        writer.finish()
 
 
 def test_writer_guards(tmp_path: Path) -> None:

@@ -43,7 +43,7 @@ from daemon.ingest import (
 )
 from daemon.keys import alive_key, calibration_key, detections_key, health_key, trigger_key, v2x_key
 from daemon.main import Daemon
-from daemon.recording import list_recordings, read_recording
+from daemon.recording import list_recordings, read_recording, read_window
 from daemon.state import StateStore
 from daemon.status import fetch_status, status_main
 from pipeline.metrics import result_from_ground_truth
@@ -140,15 +140,15 @@ class Site:
 
     def recorded(self) -> tuple[set[int], dict[int, set[int]]]:
         """Stamps in the daemon's recordings so far: the seeded camera's detections, and V2X per station.
-        The recorder flushes every storage.flush_interval_s; a file in writing is read to its last chunk."""
-        frames: set[int] = set()
+        The recorder flushes every storage.flush_interval_s; read as the daemon's jobs read them (read_window:
+        a file in writing to its last chunk, a file just opened as empty, where read_recording refuses a
+        file with nothing in it yet)."""
+        files = [recording.path for recording in list_recordings(self.daemon.recordings_dir, self.rsu)]
+        window = read_window(files, self.rsu, self.camera, None, 0, 2**63 - 1)
         positions: dict[int, set[int]] = {}
-        for recording in list_recordings(self.daemon.recordings_dir, self.rsu):
-            content = read_recording(recording.path, rsu_id=self.rsu)
-            frames.update(frame.stamp_ns for frame in content.detections.get(self.camera, []))
-            for message in content.v2x:
-                positions.setdefault(message.station_id, set()).add(message.stamp_ns)
-        return frames, positions
+        for message in window.v2x:
+            positions.setdefault(message.station_id, set()).add(message.stamp_ns)
+        return {frame.stamp_ns for frame in window.detections}, positions
 
 
 @dataclass
