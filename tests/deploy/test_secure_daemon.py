@@ -433,11 +433,19 @@ def _payload(frame: DetectionFrame) -> bytes:
 
 
 def _put_frame_counted(site: Site, detector: zenoh.Session) -> int:
-    """The detector puts the camera's next frame; returns its stamp once the daemon has counted it."""
+    """The detector puts the camera's next frame; returns its stamp once the daemon has counted it, both
+    as received (counted on arrival) and in the camera's status (counted once ingested, a moment later)."""
     before = site.counters()[DETECTIONS_RECEIVED]
+    before_camera = site.daemon.status(site.camera).counters["detections"]
     frame = site.frame()
     detector.put(detections_key(site.rsu, site.camera), _payload(frame))
-    wait_until(lambda: site.counters()[DETECTIONS_RECEIVED] > before, timeout_s=COUNTED_S)
+    wait_until(
+        lambda: (
+            site.counters()[DETECTIONS_RECEIVED] > before
+            and site.daemon.status(site.camera).counters["detections"] > before_camera
+        ),
+        timeout_s=COUNTED_S,
+    )
     return frame.stamp_ns
 
 
