@@ -485,8 +485,7 @@ def test_boxes_of_another_car_while_the_vehicle_is_behind_the_camera_do_not_drag
     data = _data_from([switched], sampler)
     model = _Model(data, sampler, R_TRUE, C_TRUE, CAMERA, VEHICLE, FLAT, truth, FLAT.prior_std())
     assert model.behind_camera(truth).all()  # the scene is what the test says
-    R = R_TRUE
-    fit, used = fit_trimmed(R, -R @ C_TRUE, [*tracks, switched], trajectory, CAMERA, VEHICLE, FLAT)
+    fit, used = fit_trimmed(R_TRUE, -R_TRUE @ C_TRUE, [*tracks, switched], trajectory, CAMERA, VEHICLE, FLAT)
     assert np.linalg.norm(fit.camera_centre - C_TRUE) < 1e-3
     assert math.degrees(rotation_angle_rad(fit.R_cam_from_local, R_TRUE)) < 1e-3
     assert [t.track_id for t in used] == [0, 1, 2]  # the switched boxes are dropped
