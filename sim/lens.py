@@ -16,6 +16,21 @@ import numpy as np
 from schemas.common import CameraIntrinsics
 from sim.geometry import FloatArray
 
+
+def opencv_undistort(
+    pixels: FloatArray, K: FloatArray, dist: FloatArray, criteria: tuple[int, int, float]
+) -> FloatArray:
+    """OpenCV's iterative undistortion of pixels (N, 2) to normalised coordinates (N, 2), run until
+    `criteria` (type, count, eps) is met, on OpenCV 4 (undistortPointsIter) and 5 (undistortPoints, which
+    took the criteria over)."""
+    src = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+    if hasattr(cv2, "undistortPointsIter"):
+        xy = cv2.undistortPointsIter(src, K, dist, None, None, criteria)
+    else:
+        xy = cv2.undistortPoints(src, K, dist, criteria=criteria)
+    return np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+
+
 # A point closer than this to the camera plane (m) cannot be imaged: no detector box exists then.
 NEAR_PLANE_M = 0.5
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
@@ -79,11 +94,7 @@ class Lens:
         pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
         if len(pixels) == 0:
             return np.zeros((0, 2))
-        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4: the stopping criterion is its own function's
-            xy = cv2.undistortPointsIter(pixels, self.K, self.dist, None, None, _UNDISTORT_CRITERIA)
-        else:  # OpenCV 5 folded it into undistortPoints
-            xy = cv2.undistortPoints(pixels, self.K, self.dist, criteria=_UNDISTORT_CRITERIA)
-        return np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return opencv_undistort(pixels, self.K, self.dist, _UNDISTORT_CRITERIA)
 
     def view_bounds(self) -> FloatArray:
         """Normalised image-plane bounds [x_min, y_min, x_max, y_max] (undistorted) of the image."""
