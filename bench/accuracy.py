@@ -1,12 +1,14 @@
 """Accuracy benchmark: every simulator preset (but `long`) over seeds, calibrate() on every camera, scored
 against the ground truth, beside the paper's figures and our targets. Not part of the test suite.
 
-    python -m bench.accuracy [--seeds 10] [--presets a,b,...] [--ideal] [--readout MS] [--jobs 2]
-                             [--json out.json]
+    python -m bench.accuracy [--seeds 10] [--presets a,b,...] [--ideal] [--readout MS] [--latency MS]
+                             [--jobs 2] [--json out.json]
 
 The world is the simulator's real one (shaped bodies, a biased detector, unknown latency, rolling shutters,
 CAM V2X) unless `--ideal` asks for the first simulator's world (cuboid boxes, no latency, global shutters,
-IMU poses as V2X). `--readout MS` gives every camera that rolling-shutter readout in either world.
+IMU poses as V2X). `--readout MS` gives every camera that rolling-shutter readout in either world,
+`--latency MS` that latency (detection stamp minus exposure, unknown to rsucal; negative: a camera clock
+ahead of the vehicle's) instead of the world's.
 
 Per (preset, seed): simulate(preset, seed), then calibrate() for every camera with the true clock offset as
 the known `time_offset_ns`, and evaluate_against_ground_truth() of the result (accepted results count) and of
@@ -409,11 +411,11 @@ def run_seed(task: tuple[str, int, bool, float | None]) -> list[Run]:
     from pipeline.metrics import evaluate_against_ground_truth, result_from_ground_truth, true_time_offset_ns
     from sim.simulate import simulate
 
-    preset, seed, ideal, readout_s = task
+    preset, seed, ideal, readout_s, latency_s = task
     base: Run = {"preset": preset, "seed": seed, "ideal": ideal}
     try:
         started = time.perf_counter()
-        sim = simulate(preset, seed, ideal=ideal, readout_s=readout_s)
+        sim = simulate(preset, seed, ideal=ideal, readout_s=readout_s, latency_s=latency_s)
         simulate_s = time.perf_counter() - started
     except Exception as err:
         return [{**base, "camera": "*", "verdict": "error", "error": _describe(err), "reasons": []}]
@@ -689,10 +691,16 @@ def _task_weight(preset: str) -> float:
 
 
 def _run_all(
-    names: Sequence[str], seeds: range, jobs: int, ideal: bool, readout_s: float | None = None
+    names: Sequence[str],
+    seeds: range,
+    jobs: int,
+    ideal: bool,
+    readout_s: float | None = None,
+    latency_s: float | None = None,
 ) -> list[Run]:
     tasks = sorted(
-        ((p, s, ideal, readout_s) for p in names for s in seeds), key=lambda t: -_task_weight(t[0])
+        ((p, s, ideal, readout_s, latency_s) for p in names for s in seeds),
+        key=lambda t: -_task_weight(t[0]),
     )
     runs: list[Run] = []
     started = time.perf_counter()
@@ -735,6 +743,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="MS",
         help="every camera's rolling-shutter readout (ms) in either world",
     )
+    parser.add_argument(
+        "--latency",
+        type=float,
+        metavar="MS",
+        help="every camera's latency (ms, stamp minus exposure; may be negative) in either world",
+    )
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--json", type=Path, help="also write every run and the summary here")
     parser.add_argument(
@@ -768,10 +782,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.readout is not None and not 0.0 <= args.readout <= 1000.0:
             parser.error(f"--readout {args.readout}: a readout time in ms, 0-1000")
         readout_s = None if args.readout is None else args.readout / 1e3
-        runs = _run_all(names, seeds, args.jobs, args.ideal, readout_s)
+        if args.latency is not None and not -1000.0 <= args.latency <= 1000.0:
+            parser.error(f"--latency {args.latency}: a latency in ms, -1000..1000")
+        latency_s = None if args.latency is None else args.latency / 1e3
+        runs = _run_all(names, seeds, args.jobs, args.ideal, readout_s, latency_s)
         world = "IDEAL world (cuboid boxes, no latency, IMU poses)" if args.ideal else "real world"
         if readout_s is not None:
             world += f", every camera with a {args.readout:g} ms rolling-shutter readout"
+        if latency_s is not None:
+            world += f", every camera with a {args.latency:g} ms latency"
         header = (
             f"rsucal accuracy benchmark, {world}: {len(names)} presets x seeds {seeds.start}.."
             f"{seeds.stop - 1}, every camera, known vehicle clock offset; {len(runs)} runs in "

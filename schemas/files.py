@@ -80,7 +80,9 @@ class GroundTruth(StrictModel):
     clock_offset_ns: int = Field(default=0, description="vehicle clock minus camera clock")
     traversals: int = Field(ge=0, description="traversals in which the vehicle was detected by this camera")
     latency_ns: int = Field(
-        default=0, ge=0, description="detection stamp minus exposure time (unknown to rsucal)"
+        default=0,
+        description="detection stamp minus exposure time (unknown to rsucal; negative: a camera clock that "
+        "lags the vehicle's by more than the latency)",
     )
     readout_ns: int = Field(
         default=0,

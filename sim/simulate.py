@@ -431,12 +431,19 @@ def _moved(
 
 
 def _camera_stamps(
-    times: FloatArray, start_ns: int, clock: ClockSpec, rng: np.random.Generator
+    times: FloatArray,
+    start_ns: int,
+    clock: ClockSpec,
+    rng: np.random.Generator,
+    latency_override_s: float | None = None,
 ) -> tuple[IntArray, int]:
-    """Detection stamps (N,) ns: exposure + the camera's latency (drawn per camera within clock.latency_s)
-    + a few ms of jitter (+ drift); and the latency in ns. Stamps stay strictly increasing."""
+    """Detection stamps (N,) ns: exposure + the camera's latency (drawn per camera within clock.latency_s,
+    or `latency_override_s`) + a few ms of jitter (+ drift); and the latency in ns. Stamps stay strictly
+    increasing."""
     low, high = clock.latency_s
-    latency_s = float(rng.uniform(low, high)) if high > low else float(low)
+    # Drawn even when overridden, so that every later draw (jitter, the detector's) stays the same.
+    drawn = float(rng.uniform(low, high)) if high > low else float(low)
+    latency_s = drawn if latency_override_s is None else latency_override_s
     jitter = clock.latency_jitter_s
     noise = np.clip(rng.normal(0.0, jitter, size=len(times)), -3 * jitter, 3 * jitter) if jitter > 0 else 0.0
     drift = clock.drift_ppm * 1e-6 * times
@@ -500,12 +507,17 @@ def _cam_broadcasts(
 
 
 def simulate(
-    preset: str | ScenarioConfig, seed: int, ideal: bool = False, readout_s: float | None = None
+    preset: str | ScenarioConfig,
+    seed: int,
+    ideal: bool = False,
+    readout_s: float | None = None,
+    latency_s: float | None = None,
 ) -> SimulationResult:
-    """Simulate one scenario; the same (preset, seed, ideal, readout_s) always gives the same result.
-    `ideal` runs the scene in the first simulator's world (see sim.presets.ideal); `readout_s` gives every
-    camera that rolling-shutter readout instead of the world's (0 in the ideal world, drawn in the real
-    one)."""
+    """Simulate one scenario; the same (preset, seed, ideal, readout_s, latency_s) always gives the same
+    result. `ideal` runs the scene in the first simulator's world (see sim.presets.ideal); `readout_s` gives
+    every camera that rolling-shutter readout instead of the world's (0 in the ideal world, drawn in the real
+    one); `latency_s` every camera that latency (s, stamp minus exposure; negative for a camera clock ahead
+    of the vehicle's) instead of the world's, the rest of the scene unchanged."""
     config = resolve_config(preset)
     if ideal:
         config = ideal_world(config)
@@ -587,7 +599,7 @@ def simulate(
     for index, (camera, camera_rng) in enumerate(zip(cameras, camera_rngs, strict=True)):
         times = _frame_times(traffic.end_s, detector.fps, detector.frame_jitter_s, rng["frames"])
         real_rng = _real_rng(seed, config.name, 100 + index)
-        stamps, latency_ns = _camera_stamps(times, start_ns, clock, real_rng)
+        stamps, latency_ns = _camera_stamps(times, start_ns, clock, real_rng, latency_s)
         low, high = clock.readout_s or (0.0, 0.0)
         # Its own generator: the other draws do not move.
         readout = float(_real_rng(seed, config.name, 200 + index).uniform(low, high)) if high > 0 else 0.0

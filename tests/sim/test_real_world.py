@@ -97,6 +97,25 @@ def test_the_latency_preset_lags_by_250_ms() -> None:
     assert result.ground_truth["north"].latency_ns == 250_000_000
 
 
+@pytest.mark.parametrize("ideal", [False, True])
+def test_a_given_latency_moves_every_stamp_and_nothing_else(ideal: bool) -> None:
+    # bench.accuracy --latency: the same scene with the camera's stamps late (or early: a camera clock
+    # behind the vehicle's) by the given latency instead of the world's (drawn, or none in the ideal world).
+    config = shrink(PRESETS["sil-north"], routes=("S>N",), traffic=5)
+    drawn = simulate(config, seed=2, ideal=ideal)
+    for latency_s in (0.45, -0.4):
+        given = simulate(config, seed=2, ideal=ideal, latency_s=latency_s)
+        truth, before = given.ground_truth["north"], drawn.ground_truth["north"]
+        assert truth.latency_ns == round(latency_s * 1e9)
+        moved = truth.latency_ns - before.latency_ns
+        stamps = np.array([f.stamp_ns for f in truth.frames]) - moved
+        assert np.abs(stamps - [f.stamp_ns for f in before.frames]).max() <= 1  # ns of rounding
+        assert [f.exposure_ns for f in truth.frames] == [f.exposure_ns for f in before.frames]
+        boxes = [[b.model_dump() for b in f.boxes] for f in given.detections["north"]]
+        assert boxes == [[b.model_dump() for b in f.boxes] for f in drawn.detections["north"]]
+        assert given.v2x == drawn.v2x
+
+
 def test_v2x_are_cams_at_1_to_10_hz_without_pitch_or_roll(north: SimulationResult) -> None:
     assert north.v2x_mode == "cam" and north.ground_truth["north"].v2x == "cam"
     stamps = np.array([m.stamp_ns for m in north.v2x])
