@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -138,7 +139,9 @@ class PipelineParams:
     # The template and detector convention replace the cuboid only when their cross-validated misfit is
     # below this share of the cuboid's (simpler wins ties).
     template_gain: float = 0.9
-    # A fitted time shift smaller than this (and than 3 of its std) leaves the prior offset in place.
+    # A fitted time shift smaller than this (and than 3 of its std) leaves the configured offset in place.
+    # Only the configured one: on a clock the pipeline estimated (the clock scan's, the previous pass's
+    # final fit) the shift is always fitted, for that clock is itself an estimate (final_fit.joint_fit).
     min_time_shift_s: float = 0.010
 
 
@@ -188,7 +191,8 @@ def calibrate(
     # 6 columns) and the worker threads only add hand-off cost; on a busy 2-core RSU a (4000, 6) SVD took
     # 84 ms with OpenBLAS's 2 threads against 1.4 ms with one. The previous limits are restored on return.
     with threadpool_limits(limits=1):
-        tracked = _Tracked()  # image tracks do not depend on the clock: every pass shares them
+        # Image tracks do not depend on the clock: every pass shares them.
+        tracked = _Tracked(configured_offset_ns=inputs.time_offset_ns)
 
         def run(
             on: CalibrationInputs,
@@ -196,60 +200,131 @@ def calibrate(
             hypotheses: Sequence[Hypothesis] | None = None,
             focus: Candidate | None = None,
             first: bool = False,
+            rescan: bool = False,
         ) -> CalibrationOutcome | ClockScan | _Pending:
             return _calibrate(
-                on, params, rng, progress, created_at_ns, map_fn, tracked, scan, hypotheses, focus, first
+                on,
+                params,
+                rng,
+                progress,
+                created_at_ns,
+                map_fn,
+                tracked,
+                scan,
+                hypotheses,
+                focus,
+                first,
+                rescan,
             )
 
-        scanned = run(inputs, scan=True, first=True)
-        notes: tuple[StageReport, ...] = ()
-        if isinstance(scanned, ClockScan):
-            # No two drive-pasts agreed on the assumed clock, but they do on another (pipeline.clock).
-            inputs = replace(inputs, time_offset_ns=inputs.time_offset_ns - round(scanned.shift_s * 1e9))
-            notes = (
-                StageReport(
-                    "clock scan",
-                    len(scanned.track_ids),
-                    0,
-                    (f"the assumed clock grouped no two drive-pasts; {scanned.describe()}: every stage ran "
-                     "again on that clock",),
-                ),
-            )  # fmt: skip
-            scanned = run(inputs, hypotheses=scanned.hypotheses, first=True)
-        assert not isinstance(scanned, ClockScan)  # only a pass with `scan` returns one
-        first: CalibrationOutcome | _Pending
-        estimate: int | None
-        if isinstance(scanned, _Pending):
-            first, estimate = replace(scanned, before=notes), scanned.estimate_ns
-        else:
-            first = replace(scanned, stages=(*notes, *scanned.stages))
-            estimate = first.result.time_offset_ns
-        if estimate is None or abs(estimate - inputs.time_offset_ns) <= params.repeat_offset_ns:
-            assert isinstance(first, CalibrationOutcome)  # a pass is pending only beyond that
-            return first
-        # The stages before the final fit paired boxes and poses on the assumed clock: a latency of 0.2 s
-        # puts the vehicle 2 m from its boxes, which spoils hypotheses, grouping and extension. With the
-        # offset estimated, the whole pipeline runs once more on the corrected clock (a search wrapped around
-        # the fit); the estimate is then the prior. Its hypotheses are fitted again only for the tracks during
-        # which the first pass's camera sees the vehicle (the others keep that pass's, moved to this clock).
-        second = run(replace(inputs, time_offset_ns=estimate), focus=first.chosen)
-        assert isinstance(second, CalibrationOutcome)  # neither scanning nor first
-        said = (
-            f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
-            f"{inputs.time_offset_ns / 1e6:.1f} ms: every stage ran again on the corrected clock"
+        outcome = _settled(
+            run(inputs, scan=True, first=True),
+            inputs,
+            run,
+            params,
+            "the assumed clock grouped no two drive-pasts",
         )
-        if second.chosen is None and first.chosen is not None:
-            # Single-track hypotheses are coarse, and on the corrected clock they may group nothing where
-            # they grouped on the first; the first pass's final fit estimated the offset with the pose, so
-            # its result stands (with its own gates) rather than a refusal for want of a group.
-            stands = first.finish() if isinstance(first, _Pending) else first
-            why = second.result.verdict.reasons[0] if second.result.verdict.reasons else "refused"
-            note = StageReport(
-                "time offset", 0, 1, (f"{said}, where it found no pose ({why}): the first pass stands",)
-            )
-            return replace(stands, stages=(note, *stands.stages))
-        note = StageReport("time offset", 1, 0, (said,))
-        return replace(second, stages=(*notes, note, *second.stages))
+        assumed = tracked.assumed
+        if outcome.result.verdict.status == "accepted" or tracked.scanned or assumed is None:
+            return outcome
+        if len(assumed.hypotheses) < 2:
+            return outcome
+        # The drive-pasts that grouped on the assumed clock gave a pose the gates refused, and the clock was
+        # never searched: a latency of a few tenths of a second lets other vehicles' tracks (or one
+        # drive-past's) group there by chance while the calibration vehicle's cannot. The clock scan then
+        # runs over the same hypotheses; a pose found on its clock replaces the refusal only if every gate
+        # passes there.
+        rescanned = run(inputs, scan=True, first=True, rescan=True)
+        if not isinstance(rescanned, ClockScan):
+            return outcome
+        estimated = outcome.result.time_offset_ns
+        scanned_ns = inputs.time_offset_ns - round(rescanned.shift_s * 1e9)
+        if estimated is not None and abs(scanned_ns - estimated) <= params.repeat_offset_ns:
+            return outcome  # the refused pass's own clock: a pass there would repeat it
+        reasons = outcome.result.verdict.reasons
+        refused = f"the assumed clock's pose was refused ({reasons[0] if reasons else 'refused'})"
+        retry = _settled(rescanned, inputs, run, params, refused)
+        if retry.result.verdict.status == "accepted":
+            return retry
+        why = retry.result.verdict.reasons[0] if retry.result.verdict.reasons else "refused"
+        note = StageReport(
+            "clock scan", 0, 1, (f"after the refusal, {rescanned.describe()}: refused there too ({why})",)
+        )
+        return replace(outcome, stages=(*outcome.stages, note))
+
+
+class _Run(Protocol):
+    """calibrate()'s pass over every stage on one clock (`_calibrate` with the call's fixed arguments)."""
+
+    def __call__(
+        self,
+        on: CalibrationInputs,
+        scan: bool = False,
+        hypotheses: Sequence[Hypothesis] | None = None,
+        focus: Candidate | None = None,
+        first: bool = False,
+        rescan: bool = False,
+    ) -> CalibrationOutcome | ClockScan | _Pending: ...
+
+
+def _settled(
+    scanned: CalibrationOutcome | ClockScan | _Pending,
+    inputs: CalibrationInputs,
+    run: _Run,
+    params: PipelineParams,
+    why: str,
+) -> CalibrationOutcome:
+    """The outcome of a first pass on the clock of `inputs` (`scanned`): where it returned a clock scan, a
+    pass on the scan's clock (`why` says why the clock was searched); where its final fit moved the clock,
+    a second pass on that."""
+    notes: tuple[StageReport, ...] = ()
+    if isinstance(scanned, ClockScan):
+        # No two drive-pasts agreed on the assumed clock (or their pose was refused), but they do on another
+        # (pipeline.clock).
+        inputs = replace(inputs, time_offset_ns=inputs.time_offset_ns - round(scanned.shift_s * 1e9))
+        notes = (
+            StageReport(
+                "clock scan",
+                len(scanned.track_ids),
+                0,
+                (f"{why}; {scanned.describe()}: every stage ran again on that clock",),
+            ),
+        )
+        scanned = run(inputs, hypotheses=scanned.hypotheses, first=True)
+    assert not isinstance(scanned, ClockScan)  # only a pass with `scan` returns one
+    first: CalibrationOutcome | _Pending
+    estimate: int | None
+    if isinstance(scanned, _Pending):
+        first, estimate = replace(scanned, before=notes), scanned.estimate_ns
+    else:
+        first = replace(scanned, stages=(*notes, *scanned.stages))
+        estimate = first.result.time_offset_ns
+    if estimate is None or abs(estimate - inputs.time_offset_ns) <= params.repeat_offset_ns:
+        assert isinstance(first, CalibrationOutcome)  # a pass is pending only beyond that
+        return first
+    # The stages before the final fit paired boxes and poses on the assumed clock: a latency of 0.2 s
+    # puts the vehicle 2 m from its boxes, which spoils hypotheses, grouping and extension. With the
+    # offset estimated, the whole pipeline runs once more on the corrected clock (a search wrapped around
+    # the fit); the estimate is then the prior. Its hypotheses are fitted again only for the tracks during
+    # which the first pass's camera sees the vehicle (the others keep that pass's, moved to this clock).
+    second = run(replace(inputs, time_offset_ns=estimate), focus=first.chosen)
+    assert isinstance(second, CalibrationOutcome)  # neither scanning nor first
+    said = (
+        f"first pass estimated {estimate / 1e6:.1f} ms against the assumed "
+        f"{inputs.time_offset_ns / 1e6:.1f} ms: every stage ran again on the corrected clock"
+    )
+    if second.chosen is None and first.chosen is not None:
+        # Single-track hypotheses are coarse, and on the corrected clock they may group nothing where
+        # they grouped on the first; the first pass's final fit estimated the offset with the pose, so
+        # its result stands (with its own gates) rather than a refusal for want of a group.
+        stands = first.finish() if isinstance(first, _Pending) else first
+        why_not = second.result.verdict.reasons[0] if second.result.verdict.reasons else "refused"
+        note = StageReport(
+            "time offset", 0, 1, (f"{said}, where it found no pose ({why_not}): the first pass stands",)
+        )
+        return replace(stands, stages=(note, *stands.stages))
+    note = StageReport("time offset", 1, 0, (said,))
+    return replace(second, stages=(*notes, note, *second.stages))
 
 
 def _calibrate(
@@ -264,6 +339,7 @@ def _calibrate(
     hypotheses: Sequence[Hypothesis] | None = None,
     focus: Candidate | None = None,
     first: bool = False,
+    rescan: bool = False,
 ) -> CalibrationOutcome | ClockScan | _Pending:
     """One pass of every stage on the clock `inputs.time_offset_ns`, in order; each appends its report, a
     stage that leaves nothing to go on refuses. With `scan`, a pass whose grouping finds nothing searches
@@ -272,7 +348,9 @@ def _calibrate(
     pass's chosen candidate), only the tracks during which its pose sees the vehicle get new hypotheses
     (`_focused`). With `first`, a pass whose settled joint fit (final_fit.JointFit) moves the clock by more
     than `params.repeat_offset_ns` returns it pending: the caller runs again on the new clock and finishes
-    this pass only if it needs its result."""
+    this pass only if it needs its result. With `rescan` (and `scan`), the pass groups the first pass's
+    hypotheses on the configured clock (`_Tracked.assumed`) and searches other clocks even though they
+    group: it returns the scan when it finds a clock, else a refusal."""
     report: list[StageReport] = []
     say = progress or (lambda _stage, _fraction: None)
     camera = CameraModel.from_intrinsics(inputs.intrinsics)
@@ -320,9 +398,15 @@ def _calibrate(
         kept = _focused(
             matched, pose.R_cam_from_local, pose.t_cam_from_local, previous, inputs, camera, reach
         )
-    hypothesis_set, said = _hypotheses(
-        matched, ground, trajectory, camera, inputs, params, rng, map_fn, hypotheses, kept
-    )
+    if rescan and tracked.assumed is not None:
+        hypothesis_set = tracked.assumed
+        said = StageReport("hypotheses", len(hypothesis_set.hypotheses), 0, ("the first pass's",))
+    else:
+        hypothesis_set, said = _hypotheses(
+            matched, ground, trajectory, camera, inputs, params, rng, map_fn, hypotheses, kept
+        )
+    if hypotheses is None and kept is None and inputs.time_offset_ns == tracked.configured_offset_ns:
+        tracked.assumed = hypothesis_set
     tracked.previous = _Previous(inputs.time_offset_ns, {m.track_id: m for m in matched}, hypothesis_set)
     report.append(said)
     if not hypothesis_set.hypotheses:
@@ -335,10 +419,15 @@ def _calibrate(
     grouping = group_hypotheses(hypothesis_set, scene.tracks, frames, camera, inputs.vehicle, params.grouping)
     report.append(_grouping_report(grouping))
     groups = [g.track_ids for g in grouping.groups]
-    if not groups and scan:
-        clock = _scan_clock(hypothesis_set, track_set, association, frames, scene, params)
+    if (not groups or rescan) and scan:
+        tracked.scanned = True
+        clock = _scan_clock(
+            hypothesis_set, track_set, association, frames, scene, ground, params, rng, map_fn
+        )
         if clock.found:
             return clock
+        if rescan:
+            return refuse(f"clock scan: {clock.describe()}", origin)
         report.append(StageReport("clock scan", 0, 0, (clock.describe(),)))
     if not groups:
         groups, regrouping = regroup(hypothesis_set.hypotheses, scene)
@@ -381,7 +470,8 @@ def _calibrate(
 
     say("final fit", 0.94)
     try:
-        joint = joint_fit(choice.chosen, scene, params.model, params.min_time_shift_s)
+        configured = inputs.time_offset_ns == tracked.configured_offset_ns
+        joint = joint_fit(choice.chosen, scene, params.model, params.min_time_shift_s if configured else None)
     except DegenerateGeometry as err:
         return refuse(f"final fit: {err}", origin)
     pending = _Pending(
@@ -465,10 +555,27 @@ def _scan_clock(
     association: AssociationParams,
     frames: Sequence[FrameBoxes],
     scene: Scene,
+    ground: GroundPlaneFit,
     params: PipelineParams,
+    rng: np.random.Generator,
+    map_fn: MapFn,
 ) -> ClockScan:
     """The clock scan (pipeline.clock): grouping on trial clocks, the tracks paired again with the poses on
-    each."""
+    each; the anchor clocks' hypotheses fitted afresh as on the assumed clock."""
+
+    def solve(_shift_s: float, tracks: Mapping[int, MatchedTrack]) -> tuple[Hypothesis, ...]:
+        found = create_hypotheses(
+            list(tracks.values()),
+            scene.camera,
+            scene.vehicle,
+            ground,
+            params.hypotheses,
+            rng,
+            trajectory=scene.trajectory,
+            map_fn=map_fn,
+        )
+        return found.hypotheses
+
     return scan_clock(
         hypothesis_set.hypotheses,
         scene.tracks,
@@ -478,6 +585,7 @@ def _scan_clock(
         scene.vehicle,
         params.grouping,
         params.clock,
+        solve,
     )
 
 
@@ -486,8 +594,13 @@ class _Tracked:
     """The image tracks of one calibrate() call, made by its first pass and shared by the reruns on another
     clock (tracking stays in the image: the same boxes give the same tracks)."""
 
+    configured_offset_ns: int  # the caller's time offset, which passes on other clocks have left
     frames: list[FrameBoxes] = field(default_factory=list)
     track_set: TrackSet | None = None
+    # The hypotheses fitted on the configured clock (for a clock scan after a refusal), and whether any
+    # pass searched the clock (pipeline.clock).
+    assumed: HypothesisSet | None = None
+    scanned: bool = False
     previous: _Previous | None = None  # the latest pass's hypotheses, for a focused rerun (`_focused`)
 
 

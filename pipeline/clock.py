@@ -10,13 +10,21 @@ put their hypotheses 3.6 m apart, and grouping, which expects one camera, finds 
 So when the assumed clock groups nothing, grouping is tried on trial clocks: for a trial shift s, each
 hypothesis is moved back by `v_i s` (v_i its track's least-squares velocity over its inliers), refitted by
 Levenberg-Marquardt on its rows re-paired with the poses on the shifted clock (free PnP solutions only),
-and the similarity scores and clustering of grouping are applied unchanged. The drive-pasts are those of the
-largest group found on the most trial clocks. They agree over a plateau of clocks 0.1-0.3 s wide (r_ov
-cannot see a camera displaced along the road by up to half a car length), so the clock is not the plateau's
-edge or centre but the trial, refined by a parabola, on which their corrected cameras lie closest together.
-The caller runs every stage again on that clock, starting from the hypotheses moved there. The final fit
-estimates the offset itself (vehicle_model), with this as its prior, and the pipeline reruns once more when
-that estimate moves (calibrate).
+and the similarity scores and clustering of grouping are applied unchanged. That move holds only near the
+clock a hypothesis was fitted on: a few tenths of a second off, the poses of a curve no longer match its
+boxes by a displacement, and the track's fit lands under the road or leaves the rotation unfixed, so the
+track has no hypothesis to move (a test scene's opposite drive-pasts: one of the two lost from 0.3 s on),
+and a weakly fixed one refitted by LM settles in whichever minimum is near (OpenCV 4 and 5 differ there).
+So the trial clocks are split among anchor clocks `solve_step_s` apart (the assumed one among them), and
+the hypotheses of every anchor but the assumed clock's are fitted afresh on its re-paired tracks (the
+caller's `solve`, every stage of pipeline.hypotheses); a trial clock moves those of its nearest anchor.
+
+The drive-pasts are those of the largest group found on the most trial clocks. They agree over a plateau
+of clocks 0.1-0.3 s wide (r_ov cannot see a camera displaced along the road by up to half a car length), so
+the clock is not the plateau's edge or centre but the trial, refined by a parabola, on which their corrected
+cameras lie closest together. The caller runs every stage again on that clock, starting from the
+hypotheses moved there. The final fit estimates the offset itself (vehicle_model), with this as its prior,
+and the pipeline reruns once more when that estimate moves (calibrate).
 """
 
 from __future__ import annotations
@@ -40,6 +48,8 @@ from schemas.common import VehicleProfile
 
 # Matched tracks on the clock shifted by s seconds: track id -> track (the caller pairs boxes and poses).
 Rematch = Callable[[float], Mapping[int, MatchedTrack]]
+# Hypotheses fitted afresh on the tracks (by id) re-paired on the clock shifted by s seconds.
+Solve = Callable[[float, Mapping[int, MatchedTrack]], Sequence[Hypothesis]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,6 +59,9 @@ class ClockParams:
     # The issue's floor is +-0.5 s; a latency beyond this is a misconfigured clock the operator must fix.
     max_shift_s: float = 0.6
     step_s: float = 0.025  # well inside the 0.1-0.3 s plateaus single-track hypotheses agree over
+    # Anchor clocks (s apart) whose hypotheses are fitted afresh: a trial moves hypotheses by at most half
+    # this, where the moved hypotheses of the test scenes still agree (0.25 s from their clock they did).
+    solve_step_s: float = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,18 +155,36 @@ def scan_clock(
     vehicle: VehicleProfile,
     grouping: GroupingParams,
     params: ClockParams,
+    solve: Solve | None = None,
 ) -> ClockScan:
-    """Group the hypotheses on trial clocks (see the module); the best trial, or none found."""
-    velocity = {
-        h.track_id: track_velocity(tracks_by_id[h.track_id], np.flatnonzero(h.inliers)) for h in hypotheses
-    }
+    """Group the hypotheses on trial clocks (see the module); the best trial, or none found. `hypotheses`
+    and `tracks_by_id` are the assumed clock's; `solve` fits the other anchors' (None: every trial moves the
+    assumed clock's)."""
+    anchors = {0: _Anchor.of(0.0, hypotheses, tracks_by_id)}
+
+    def anchor_of(shift_s: float) -> _Anchor:
+        """The anchor nearest a trial clock (ties towards the assumed clock), fitted on first use."""
+        k = 0 if solve is None else _anchor_index(shift_s, params.solve_step_s)
+        if k not in anchors:
+            assert solve is not None
+            clock_s = k * params.solve_step_s
+            tracks = rematch(clock_s)
+            anchors[k] = _Anchor.of(clock_s, tuple(solve(clock_s, tracks)), tracks)
+        return anchors[k]
 
     def moved_to(shift_s: float, tracks: Mapping[int, MatchedTrack]) -> tuple[Hypothesis, ...]:
         # A track whose rows change with the clock (poses missing at an end) is left out on that clock.
+        anchor = anchor_of(shift_s)
         return tuple(
-            refitted(shifted(h, velocity[h.track_id], shift_s), tracks[h.track_id], camera, vehicle)
-            for h in hypotheses
-            if h.track_id in tracks and len(tracks[h.track_id].stamps) == len(tracks_by_id[h.track_id].stamps)
+            refitted(
+                shifted(h, anchor.velocity[h.track_id], shift_s - anchor.clock_s),
+                tracks[h.track_id],
+                camera,
+                vehicle,
+            )
+            for h in anchor.hypotheses
+            if h.track_id in tracks
+            and len(tracks[h.track_id].stamps) == len(anchor.tracks[h.track_id].stamps)
         )
 
     count = round(params.max_shift_s / params.step_s)
@@ -200,3 +231,27 @@ def scan_clock(
     overlap = max(o for _, i, o in trials if i == chosen)
     moved = moved_to(estimate, rematch(estimate))
     return ClockScan(estimate, chosen, overlap, len(trials), len(shifts), params.max_shift_s, moved)
+
+
+@dataclass(frozen=True, slots=True)
+class _Anchor:
+    """An anchor clock of the scan (s from the assumed one), the hypotheses fitted on it, its tracks by id
+    and the vehicle's velocity over each hypothesis's inlier rows there (track id -> (3,) m/s)."""
+
+    clock_s: float
+    hypotheses: Sequence[Hypothesis]
+    tracks: Mapping[int, MatchedTrack]
+    velocity: Mapping[int, FloatArray]
+
+    @staticmethod
+    def of(clock_s: float, hypotheses: Sequence[Hypothesis], tracks: Mapping[int, MatchedTrack]) -> _Anchor:
+        velocity = {
+            h.track_id: track_velocity(tracks[h.track_id], np.flatnonzero(h.inliers)) for h in hypotheses
+        }
+        return _Anchor(clock_s, hypotheses, tracks, velocity)
+
+
+def _anchor_index(shift_s: float, step_s: float) -> int:
+    """The index k of the anchor clock k * step_s nearest `shift_s`; a tie goes to the one nearer 0."""
+    k = max(math.ceil(abs(shift_s) / step_s - 0.5 - 1e-9), 0)
+    return int(math.copysign(k, shift_s)) if k else 0
