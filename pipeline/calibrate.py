@@ -22,7 +22,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Protocol
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -193,30 +192,7 @@ def calibrate(
     with threadpool_limits(limits=1):
         # Image tracks do not depend on the clock: every pass shares them.
         tracked = _Tracked(configured_offset_ns=inputs.time_offset_ns)
-
-        def run(
-            on: CalibrationInputs,
-            scan: bool = False,
-            hypotheses: Sequence[Hypothesis] | None = None,
-            focus: Candidate | None = None,
-            first: bool = False,
-            rescan: bool = False,
-        ) -> CalibrationOutcome | ClockScan | _Pending:
-            return _calibrate(
-                on,
-                params,
-                rng,
-                progress,
-                created_at_ns,
-                map_fn,
-                tracked,
-                scan,
-                hypotheses,
-                focus,
-                first,
-                rescan,
-            )
-
+        run = _Passes(params, rng, progress, created_at_ns, map_fn, tracked)
         outcome = _settled(
             run(inputs, scan=True, first=True),
             inputs,
@@ -253,8 +229,17 @@ def calibrate(
         return replace(outcome, stages=(*outcome.stages, note))
 
 
-class _Run(Protocol):
-    """calibrate()'s pass over every stage on one clock (`_calibrate` with the call's fixed arguments)."""
+@dataclass(frozen=True, slots=True)
+class _Passes:
+    """calibrate()'s passes over every stage, each on one clock: `_calibrate` with the call's fixed
+    arguments."""
+
+    params: PipelineParams
+    rng: np.random.Generator
+    progress: ProgressCallback | None
+    created_at_ns: int
+    map_fn: MapFn
+    tracked: _Tracked
 
     def __call__(
         self,
@@ -264,13 +249,27 @@ class _Run(Protocol):
         focus: Candidate | None = None,
         first: bool = False,
         rescan: bool = False,
-    ) -> CalibrationOutcome | ClockScan | _Pending: ...
+    ) -> CalibrationOutcome | ClockScan | _Pending:
+        return _calibrate(
+            on,
+            self.params,
+            self.rng,
+            self.progress,
+            self.created_at_ns,
+            self.map_fn,
+            self.tracked,
+            scan,
+            hypotheses,
+            focus,
+            first,
+            rescan,
+        )
 
 
 def _settled(
     scanned: CalibrationOutcome | ClockScan | _Pending,
     inputs: CalibrationInputs,
-    run: _Run,
+    run: _Passes,
     params: PipelineParams,
     why: str,
 ) -> CalibrationOutcome:

@@ -37,9 +37,12 @@ RATIONAL_WIDE = (2.1, 0.6, 0.0004, -0.0003, 0.01, 2.45, 1.3, 0.08)
 
 
 @cache
-def _run(preset: str, seed: int) -> tuple[SimulationResult, CalibrationOutcome, Evaluation]:
-    """Simulate, calibrate the (single) camera and evaluate; cached so each scene runs once per session."""
-    sim = simulate(preset, seed=seed, ideal=True)
+def _run(
+    preset: str, seed: int, readout_s: float | None = None, latency_s: float | None = None
+) -> tuple[SimulationResult, CalibrationOutcome, Evaluation]:
+    """Simulate (the camera's readout and latency given, or the world's), calibrate the (single) camera and
+    evaluate; cached so each scene runs once per session."""
+    sim = simulate(preset, seed=seed, ideal=True, readout_s=readout_s, latency_s=latency_s)
     camera = sim.cameras[0]
     inputs = calibration_inputs(sim, camera.camera_id)
     outcome = calibrate(
@@ -249,17 +252,9 @@ def test_a_rolling_shutter_camera_is_calibrated_and_its_readout_estimated() -> N
     # The paper's CARLA-like scene with the camera reading its rows out over 30 ms (boxes on lower rows show
     # the vehicle up to 15 ms later than the middle row's): the pose as without it, the readout found
     # (measured at the time of writing: 29.6 ms, pose 0.0004 m off) and the clock that of the middle row.
-    sim = simulate("carla-like", seed=0, ideal=True, readout_s=0.03)
-    camera = sim.cameras[0]
-    truth = sim.ground_truth[camera.camera_id]
-    outcome = calibrate(
-        calibration_inputs(sim, camera.camera_id),
-        PipelineParams(),
-        np.random.default_rng(CALIBRATION_SEED),
-        created_at_ns=CREATED_AT_NS,
-    )
+    sim, outcome, evaluation = _run("carla-like", 0, readout_s=0.03)
+    truth = sim.ground_truth[sim.cameras[0].camera_id]
     _assert_accepted(outcome)
-    evaluation = evaluate_against_ground_truth(outcome.result, truth)
     assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.05
     assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg < 0.05
     assert abs(_readout_ms(outcome) - 30.0) < 5.0
@@ -283,19 +278,11 @@ def test_a_latency_of_tenths_of_a_second_is_searched_when_the_assumed_clock_grou
     # refused ("traversals = 1 < 2"); the clock had never been searched, because something grouped. The
     # scan then runs after the refusal, and the pose on its clock passes every gate (measured at the time
     # of writing, +400 ms: 0.00003 m off, the clock within 0.002 ms).
-    sim = simulate("carla-like", seed=0, ideal=True, latency_s=latency_s)
-    camera = sim.cameras[0]
-    truth = sim.ground_truth[camera.camera_id]
-    outcome = calibrate(
-        calibration_inputs(sim, camera.camera_id),
-        PipelineParams(),
-        np.random.default_rng(CALIBRATION_SEED),
-        created_at_ns=CREATED_AT_NS,
-    )
+    sim, outcome, evaluation = _run("carla-like", 0, latency_s=latency_s)
+    truth = sim.ground_truth[sim.cameras[0].camera_id]
     _assert_accepted(outcome)
     scan = " ".join(note for stage in outcome.stages if stage.stage == "clock scan" for note in stage.notes)
     assert "the assumed clock's pose was refused" in scan
-    evaluation = evaluate_against_ground_truth(outcome.result, truth)
     assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.05
     assert evaluation.rotation_error_deg is not None and evaluation.rotation_error_deg < 0.05
     assert outcome.result.time_offset_ns is not None
