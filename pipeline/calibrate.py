@@ -62,6 +62,7 @@ from pipeline.selection import (
     refine_groups,
     regroup,
 )
+from pipeline.smoothing import smoothed
 from pipeline.stage import Reason, StageReport, count_reasons
 from pipeline.tables import PoseTable
 from pipeline.tracking import FrameBoxes, TrackingParams, TrackSet, frames_from_detections, track_boxes
@@ -367,8 +368,10 @@ def _calibrate(
     say("association", 0.0)  # poses into the local frame, on the camera clock
     origin = _local_origin(inputs.poses, inputs.crs)
     association = replace(params.association, time_offset_ns=inputs.time_offset_ns)
-    # CAMs carry no pitch: take it from the path's height profile (attitude.py).
-    trajectory = with_path_pitch(make_trajectory(inputs.poses, origin, association))
+    # CAMs carry no pitch: take it from the path's height profile (attitude.py). High-rate poses are
+    # smoothed first: their noise, interpolated at boxes that all fall at one phase between two poses, makes
+    # every pose interval a local minimum of the clock (pipeline.smoothing).
+    trajectory = with_path_pitch(smoothed(make_trajectory(inputs.poses, origin, association)))
     diagnostics = CalibrationDiagnostics(origin, trajectory)
 
     say("tracking", 0.1)
