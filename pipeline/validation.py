@@ -50,6 +50,14 @@ STD_SOURCES = {
 }
 
 
+def imprecise_only(reasons: Sequence[str]) -> bool:
+    """Whether a refusal's reasons (`validate`'s) are all std gates: a pose whose drive-pasts agree with each
+    other and with the boxes, known too loosely to accept."""
+    return bool(reasons) and all(
+        reason.startswith(("position std = ", "rotation std = ")) for reason in reasons
+    )
+
+
 def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:
     """Apply every gate; accepted only if all pass. Reasons name the quantity, its value and the limit.
 

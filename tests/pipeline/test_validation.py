@@ -10,7 +10,7 @@ import pytest
 from pydantic import ValidationError
 
 from pipeline.camera import CameraModel, camera_rotation_from_view
-from pipeline.validation import ValidationEvidence, count_traversals, validate
+from pipeline.validation import ValidationEvidence, count_traversals, imprecise_only, validate
 from schemas.common import CameraIntrinsics
 from schemas.config import GatesConfig
 
@@ -169,3 +169,13 @@ def test_a_vehicle_beyond_the_lens_model_is_out_of_view() -> None:
     poses[aside, :2] = (2.26, -15.71)
     spans = [(0, 4 * _S), (15 * _S, 18 * _S)]
     assert count_traversals(spans, stamps, poses, _R, _T, camera) == 2
+
+
+def test_a_refusal_on_stds_alone_is_told_from_one_on_other_gates() -> None:
+    # calibrate() searches the clock after a refusal unless the pose was refused on its stds alone.
+    imprecise = replace(GOOD, position_std_m=1.0, rotation_std_deg=1.0)
+    verdict = validate(imprecise, GatesConfig())
+    assert len(verdict.reasons) == 2 and imprecise_only(verdict.reasons)
+    assert not imprecise_only(validate(replace(imprecise, traversals=1), GatesConfig()).reasons)
+    assert not imprecise_only(validate(replace(GOOD, delta_p_mean_m=0.8), GatesConfig()).reasons)
+    assert not imprecise_only(validate(GOOD, GatesConfig()).reasons)  # accepted: no reasons
