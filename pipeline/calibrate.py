@@ -372,8 +372,13 @@ def _calibrate(
     association = replace(params.association, time_offset_ns=inputs.time_offset_ns)
     # CAMs carry no pitch: take it from the path's height profile (attitude.py). High-rate poses are
     # smoothed first: their noise, interpolated at boxes that all fall at one phase between two poses, makes
-    # every pose interval a local minimum of the clock (pipeline.smoothing).
-    trajectory = with_path_pitch(smoothed(make_trajectory(inputs.poses, origin, association)))
+    # every pose interval a local minimum of the clock (pipeline.smoothing). Neither depends on the clock:
+    # the first pass's trajectory serves every pass, its stamps moved to the pass's clock.
+    if tracked.trajectory is None:
+        tracked.trajectory = with_path_pitch(smoothed(make_trajectory(inputs.poses, origin, association)))
+        tracked.trajectory_offset_ns = inputs.time_offset_ns
+    moved_ns = np.int64(inputs.time_offset_ns - tracked.trajectory_offset_ns)
+    trajectory = Trajectory(tracked.trajectory.stamps - moved_ns, tracked.trajectory.poses)
     diagnostics = CalibrationDiagnostics(origin, trajectory)
 
     say("tracking", 0.1)
@@ -601,6 +606,10 @@ class _Tracked:
     configured_offset_ns: int  # the caller's time offset, which passes on other clocks have left
     frames: list[FrameBoxes] = field(default_factory=list)
     track_set: TrackSet | None = None
+    # The vehicle's trajectory on the clock `trajectory_offset_ns` (the first pass's; association), built
+    # once per call.
+    trajectory: Trajectory | None = None
+    trajectory_offset_ns: int = 0
     # The hypotheses fitted on the configured clock (for a clock scan after a refusal), and whether any
     # pass searched the clock (pipeline.clock).
     assumed: HypothesisSet | None = None

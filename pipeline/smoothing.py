@@ -45,16 +45,20 @@ def smoothed(trajectory: Trajectory, half_window_s: float = 0.15, min_samples: i
     neighbours = np.clip(neighbours, 0, count - 1)
     dt = (t[neighbours] - t[rows, None]) / half_window_s  # in [-1, 1] inside the window
     weight = np.where(inside, (1.0 - np.minimum(np.abs(dt), 1.0) ** 3) ** 3, 0.0)
-    powers = weight[:, :, None] * dt[:, :, None] ** np.arange(5)  # (R, K, 5): w dt^m
-    moments = powers.sum(axis=1)  # (R, 5)
-    normal = moments[:, np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4]])]  # (R, 3, 3)
+    powers = [weight, weight * dt, weight * dt * dt]
+    s0, s1, s2 = (p.sum(axis=1) for p in powers)
+    s3, s4 = (powers[2] * dt).sum(axis=1), (powers[2] * dt * dt).sum(axis=1)
+    # The fit's value at dt = 0 is the first row of the inverse of the normal matrix [[s0, s1, s2], [s1, s2,
+    # s3], [s2, s3, s4]] times the weighted sums of y, y dt, y dt^2: that row by cofactors.
+    c0, c1, c2 = s2 * s4 - s3 * s3, s2 * s3 - s1 * s4, s1 * s3 - s2 * s2
+    det = s0 * c0 + s1 * c1 + s2 * c2
+    solvable = np.abs(det) > 1e-9 * np.maximum(s0, 1.0) ** 3
     poses = trajectory.poses.copy()
     values = poses.copy()
     values[:, _YAW] = np.unwrap(values[:, _YAW])
-    right = np.einsum("rkm,rkc->rmc", powers[:, :, :3], values[neighbours])  # (R, 3, 6)
-    solvable = np.abs(np.linalg.det(normal)) > 1e-12 * np.maximum(moments[:, 0], 1.0) ** 3
-    rows, normal, right = rows[solvable], normal[solvable], right[solvable]
-    fitted: FloatArray = np.linalg.solve(normal, right)[:, 0, :]  # (R, 6): the fit's value at dt = 0
-    poses[rows] = fitted
+    sums = np.einsum("rkm,rkc->rmc", np.stack(powers, axis=2), values[neighbours])  # (R, 3, 6)
+    row = np.stack([c0, c1, c2], axis=1) / np.where(solvable, det, 1.0)[:, None]
+    fitted: FloatArray = np.einsum("rm,rmc->rc", row, sums)
+    poses[rows[solvable]] = fitted[solvable]
     poses[:, _YAW] = wrap_angle(poses[:, _YAW])
     return Trajectory(stamps=trajectory.stamps, poses=poses)
