@@ -143,6 +143,13 @@ class PipelineParams:
     # Only the configured one: on a clock the pipeline estimated (the clock scan's, the previous pass's
     # final fit) the shift is always fitted, for that clock is itself an estimate (final_fit.joint_fit).
     min_time_shift_s: float = 0.010
+    # Smooth poses reported at 25 Hz or more (pipeline.smoothing) before they are interpolated. Off: in the
+    # first simulator's world, whose 50 Hz poses carry independent noise, it made the clock independent of
+    # where a pass starts (a 400 ms latency: -408.9 ms from every start instead of 5-31 ms from each) and
+    # the accepted poses closer (mean 0.051 -> 0.044 m, max 0.200 -> 0.150 m), but 220 runs instead of 238
+    # were accepted (most of the 18 on their stds); a real INS reports filtered, smooth poses, and CAMs are
+    # never smoothed.
+    smooth_poses: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -370,12 +377,12 @@ def _calibrate(
     say("association", 0.0)  # poses into the local frame, on the camera clock
     origin = _local_origin(inputs.poses, inputs.crs)
     association = replace(params.association, time_offset_ns=inputs.time_offset_ns)
-    # CAMs carry no pitch: take it from the path's height profile (attitude.py). High-rate poses are
-    # smoothed first: their noise, interpolated at boxes that all fall at one phase between two poses, makes
-    # every pose interval a local minimum of the clock (pipeline.smoothing). Neither depends on the clock:
-    # the first pass's trajectory serves every pass, its stamps moved to the pass's clock.
+    # CAMs carry no pitch: take it from the path's height profile (attitude.py). High-rate poses may be
+    # smoothed first (`PipelineParams.smooth_poses`, pipeline.smoothing). Neither depends on the clock: the
+    # first pass's trajectory serves every pass, its stamps moved to the pass's clock.
     if tracked.trajectory is None:
-        tracked.trajectory = with_path_pitch(smoothed(make_trajectory(inputs.poses, origin, association)))
+        reported = make_trajectory(inputs.poses, origin, association)
+        tracked.trajectory = with_path_pitch(smoothed(reported) if params.smooth_poses else reported)
         tracked.trajectory_offset_ns = inputs.time_offset_ns
     moved_ns = np.int64(inputs.time_offset_ns - tracked.trajectory_offset_ns)
     trajectory = Trajectory(tracked.trajectory.stamps - moved_ns, tracked.trajectory.poses)
