@@ -381,13 +381,13 @@ def _calibrate(
     origin = _local_origin(inputs.poses, inputs.crs)
     association = replace(params.association, time_offset_ns=inputs.time_offset_ns)
     # CAMs carry no pitch: take it from the path's height profile (attitude.py). High-rate poses may be
-    # smoothed first (`PipelineParams.smooth_poses`, pipeline.smoothing). Neither depends on the clock: the
-    # first pass's trajectory serves every pass, its stamps moved to the pass's clock.
+    # smoothed first (`PipelineParams.smooth_poses`, pipeline.smoothing). Neither depends on the clock: one
+    # trajectory on the configured clock serves every pass, its stamps moved to the pass's clock.
     if tracked.trajectory is None:
-        reported = make_trajectory(inputs.poses, origin, association)
+        on_configured = replace(association, time_offset_ns=tracked.configured_offset_ns)
+        reported = make_trajectory(inputs.poses, origin, on_configured)
         tracked.trajectory = with_path_pitch(smoothed(reported) if params.smooth_poses else reported)
-        tracked.trajectory_offset_ns = inputs.time_offset_ns
-    moved_ns = np.int64(inputs.time_offset_ns - tracked.trajectory_offset_ns)
+    moved_ns = np.int64(inputs.time_offset_ns - tracked.configured_offset_ns)
     trajectory = Trajectory(tracked.trajectory.stamps - moved_ns, tracked.trajectory.poses)
     diagnostics = CalibrationDiagnostics(origin, trajectory)
 
@@ -616,10 +616,8 @@ class _Tracked:
     configured_offset_ns: int  # the caller's time offset, which passes on other clocks have left
     frames: list[FrameBoxes] = field(default_factory=list)
     track_set: TrackSet | None = None
-    # The vehicle's trajectory on the clock `trajectory_offset_ns` (the first pass's; association), built
-    # once per call.
+    # The vehicle's trajectory on the configured clock (association), built once per call.
     trajectory: Trajectory | None = None
-    trajectory_offset_ns: int = 0
     # The hypotheses fitted on the configured clock (for a clock scan after a refusal), and whether any
     # pass searched the clock (pipeline.clock).
     assumed: HypothesisSet | None = None

@@ -254,4 +254,4 @@ class _Anchor:
 def _anchor_index(shift_s: float, step_s: float) -> int:
     """The index k of the anchor clock k * step_s nearest `shift_s`; a tie goes to the one nearer 0."""
     k = max(math.ceil(abs(shift_s) / step_s - 0.5 - 1e-9), 0)
-    return int(math.copysign(k, shift_s)) if k else 0
+    return k if shift_s >= 0 else -k

@@ -50,12 +50,14 @@ STD_SOURCES = {
 }
 
 
+# How the std gates' reasons begin (validate writes them, imprecise_only reads them).
+_POSITION_STD, _ROTATION_STD = "position std = ", "rotation std = "
+
+
 def imprecise_only(reasons: Sequence[str]) -> bool:
     """Whether a refusal's reasons (`validate`'s) are all std gates: a pose whose drive-pasts agree with each
     other and with the boxes, known too loosely to accept."""
-    return bool(reasons) and all(
-        reason.startswith(("position std = ", "rotation std = ")) for reason in reasons
-    )
+    return bool(reasons) and all(reason.startswith((_POSITION_STD, _ROTATION_STD)) for reason in reasons)
 
 
 def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:
@@ -82,7 +84,7 @@ def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:
     k = g.std_sigmas
     if not np.isfinite(e.position_std_m) or k * e.position_std_m > g.max_position_std_m:
         reasons.append(
-            f"position std = {e.position_std_m:.3f} m ({k:g} sigma {k * e.position_std_m:.2f} m > "
+            f"{_POSITION_STD}{e.position_std_m:.3f} m ({k:g} sigma {k * e.position_std_m:.2f} m > "
             f"{g.max_position_std_m} m): "
             + _std_source(
                 e.position_std_parts, "m", "the data leave the camera position unfixed in some direction"
@@ -90,7 +92,7 @@ def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:
         )
     if not np.isfinite(e.rotation_std_deg) or k * e.rotation_std_deg > g.max_rotation_std_deg:
         reasons.append(
-            f"rotation std = {e.rotation_std_deg:.3f} deg ({k:g} sigma {k * e.rotation_std_deg:.2f} deg > "
+            f"{_ROTATION_STD}{e.rotation_std_deg:.3f} deg ({k:g} sigma {k * e.rotation_std_deg:.2f} deg > "
             f"{g.max_rotation_std_deg} deg): "
             + _std_source(
                 e.rotation_std_parts,
