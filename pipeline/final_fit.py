@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -31,6 +31,7 @@ from pipeline.vehicle_model import (
     consider_moves,
     cuboid_params,
     cuboid_rejection,
+    drive_past_gnss_moves,
     fit_trimmed,
     fit_vehicle_model,
     holdout_error,
@@ -71,7 +72,11 @@ class FinalFit:
     # of it); zero where the model fitted it.
     readout_covariance: FloatArray
     body: str = "the template"  # which body model the pose comes from, and why
-    gnss_offset_std_m: float = 0.0  # the GNSS offset common to every pose, in the fit's covariance
+    # The GNSS offset common to every pose (3, 3), in the fit's covariance; and the part of `covariance`
+    # from each drive-past's own (6, 6; vehicle_model.drive_past_gnss_moves).
+    gnss_offset_covariance: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    gnss_covariance: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    drive_past_gnss_std_m: tuple[float, float] = (0.0, 0.0)  # (horizontal, height) behind gnss_covariance
     # Where time_offset_std_s comes from: (source, std s) pairs that add up in quadrature.
     time_offset_parts: tuple[tuple[str, float], ...] = ()
     # The readout's std (reported in the stage note only): where fitted, the fit's with the body's share
@@ -84,8 +89,9 @@ class FinalFit:
             self.covariance,
             self.fit.covariance,
             self.shape_covariance,
-            self.gnss_offset_std_m,
+            self.gnss_offset_covariance,
             self.readout_covariance,
+            self.gnss_covariance,
         )
 
     @property
@@ -114,8 +120,19 @@ class FinalFit:
                 f"{self.fit.rotation_std_deg:.3f} deg, "
                 f"{self.check.traversals} traversals, leaving one out moves the pose up to "
                 f"{self.check.shift_m:.2f} m / {self.check.angle_deg:.2f} deg, the body shape the "
-                f"template cannot describe adds {body_m:.3f} m / {body_deg:.3f} deg{self._heights()}",
+                f"template cannot describe adds {body_m:.3f} m / {body_deg:.3f} deg{self._gnss()}"
+                f"{self._heights()}",
             ),
+        )
+
+    def _gnss(self) -> str:
+        horizontal, height = self.drive_past_gnss_std_m
+        if max(horizontal, height) <= 0.0:
+            return ""
+        gnss_m, gnss_deg = largest_stds(self.gnss_covariance)
+        return (
+            f", each drive-past's own GNSS error ({100 * horizontal:.1f} cm across, {100 * height:.1f} cm in "
+            f"height) {gnss_m:.3f} m / {gnss_deg:.3f} deg"
         )
 
     def _heights(self) -> str:
@@ -137,30 +154,34 @@ def std_parts(
     covariance: FloatArray,
     fit_covariance: FloatArray,
     shape_covariance: FloatArray,
-    gnss_std_m: float,
+    gnss_offset_covariance: FloatArray,
     readout_covariance: FloatArray,
+    gnss_covariance: FloatArray,
 ) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
     """Where the largest position std (m) and rotation std (deg) of a final covariance (6, 6) [w, C] come
     from, as (source, std) pairs that add up in quadrature along that std's direction
-    (validation.STD_SOURCES): the fit (noise and geometry: `fit_covariance` without the GNSS offset
-    `gnss_std_m` it carries on its position block), that GNSS offset, the drive-pasts' scatter (what the
-    traversal check raised the fit's covariance by: `covariance - shape_covariance - fit_covariance`) and
-    the body shape the template cannot describe (`shape_covariance`), and a readout held at 0
-    (`readout_covariance`). Sources of no variance (below 1e-9 of the total: rounding) are left out."""
+    (validation.STD_SOURCES): the fit (noise and geometry: `fit_covariance` without the common GNSS offset
+    (3, 3) it carries on its position block), the GNSS (that offset and each drive-past's own,
+    `gnss_covariance`), the drive-pasts' scatter (what the traversal check raised the fit's covariance by:
+    `covariance` less the consider parts less `fit_covariance`), the body shape the template cannot
+    describe (`shape_covariance`), and a readout held at 0 (`readout_covariance`). Sources of no variance
+    (below 1e-9 of the total: rounding) are left out."""
     # combined_covariance: at least the fit's in every direction
-    combined = covariance - shape_covariance - readout_covariance
+    combined = covariance - shape_covariance - readout_covariance - gnss_covariance
+    offset = np.zeros((6, 6))
+    offset[3:, 3:] = gnss_offset_covariance
     found: list[tuple[tuple[str, float], ...]] = []
-    for block, gnss, unit in ((slice(3, 6), gnss_std_m, 1.0), (slice(0, 3), 0.0, math.degrees(1.0))):
+    for block, unit in ((slice(3, 6), 1.0), (slice(0, 3), math.degrees(1.0))):
         _, vectors = np.linalg.eigh(covariance[block, block])
         v = vectors[:, -1]
 
         def along(M: FloatArray, b: slice = block, d: FloatArray = v) -> float:
             return max(float(d @ M[b, b] @ d), 0.0)
 
-        fit = along(fit_covariance)
+        fit, common = along(fit_covariance), along(offset)
         variances = [
-            ("fit", max(fit - gnss**2, 0.0)),
-            ("gnss", gnss**2),
+            ("fit", max(fit - common, 0.0)),
+            ("gnss", common + along(gnss_covariance)),
             ("drive-pasts", max(along(combined) - fit, 0.0)),
             ("body", along(shape_covariance)),
             ("readout", along(readout_covariance)),
@@ -362,16 +383,20 @@ def final_fit(
             fit, used, trajectory, camera, vehicle, clock_params, body_std_m, shift_std_px, held_readout_std_s
         )
     body_clock, readout_clock = _split_readout_row(clock_moves, held_readout_std_s > 0.0)
+    # Each drive-past's own GNSS error, as consider parameters too (the common one is in the fit's).
+    gnss_moves = drive_past_gnss_moves(fit, used, trajectory, camera, vehicle, model_params)
+    gnss_covariance = gnss_moves[:, POSE_COLUMNS].T @ gnss_moves[:, POSE_COLUMNS]
     time_parts = (
         ("fit", time_offset_std_s),
         ("drive-pasts", math.sqrt(check.time_shift_var_s2)),
         ("body", float(np.linalg.norm(body_clock[:, TIME_SHIFT]))),
         ("held readout", float(np.linalg.norm(readout_clock[:, TIME_SHIFT]))),
+        ("gnss", float(np.linalg.norm(gnss_moves[:, TIME_SHIFT]))),
     )
     return FinalFit(
         fit=fit,
         check=check,
-        covariance=combined_covariance(fit, check) + shape_covariance + readout_covariance,
+        covariance=combined_covariance(fit, check) + shape_covariance + readout_covariance + gnss_covariance,
         delta_p_mean_m=float("inf") if value is None else float(value),
         box_error_rel=model_box_error(fit, members, trajectory, camera, vehicle, model),
         # Drive-pasts counted from the data, but never more than the fit could hold against each other: two
@@ -395,7 +420,9 @@ def final_fit(
         shape_covariance=shape_covariance,
         readout_covariance=readout_covariance,
         body=body,
-        gnss_offset_std_m=model_params.pose_bias_std_m,
+        gnss_offset_covariance=model_params.gnss_covariance(),
+        gnss_covariance=gnss_covariance,
+        drive_past_gnss_std_m=model_params.drive_past_gnss_std_m,
     )
 
 

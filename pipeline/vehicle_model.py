@@ -117,7 +117,24 @@ class ModelParams:
     fit_shift: bool = False
     grow_std_px: float = 8.0
     cluster_s: float = 1.0  # residuals within this much time on one track count as one cluster
-    pose_bias_std_m: float = 0.05  # common GNSS offset of all positions (no number of boxes averages it)
+    # The vehicle's GNSS error, which no number of boxes averages out (metres, 1 std per axis). Common to
+    # every pose: horizontal `pose_bias_std_m`, height `pose_bias_height_std_m`: receivers fix height about
+    # twice as loosely as position (vertical dilution of precision; RTK data sheets: Septentrio mosaic-X5
+    # 0.6 cm H / 1 cm V, Trimble 8 mm H / 15 mm V), and a camera's height moves with it one to one.
+    pose_bias_std_m: float = 0.05
+    pose_bias_height_std_m: float = 0.10
+    # ... and each drive-past's own (horizontal, height): RTK errors wander over tens of seconds (multipath
+    # and troposphere change with the satellites' geometry), so drive-pasts minutes apart sit centimetres
+    # apart. Unlike the common offset that turns the camera: a height difference between drive-pasts in
+    # different lanes looks like a roll. Propagated as consider parameters (drive_past_gnss_moves): without
+    # them, boxes of the cuboid itself from a perfect detector and a GNSS receiver wandering 3 / 6 cm gave
+    # rotations 0.17-0.20 deg off with a reported std of 0.03-0.05 deg (docs/method.md, "Each drive-past's
+    # GNSS error"). Off (0) by default: neither a fixed value nor the accuracy a receiver reports is the
+    # wander (the first simulator's poses report their 7.5 cm of white noise and do not wander; the realistic
+    # world's CAMs report 1.4 / 2.8 cm and wander 3 / 6 cm), and 3 / 6 cm for every track refused every
+    # sil-west camera of the first simulator's world, whose drive-pasts agree to 0.05 deg. Set it where the
+    # vehicle's positioning is known.
+    drive_past_gnss_std_m: tuple[float, float] = (0.0, 0.0)
     min_sigma_px: float = 0.5
     min_depth_m: float = 0.1
     border_margin_px: float = 1.0
@@ -180,6 +197,11 @@ class ModelParams:
             + [self.readout_std_s]
         )
 
+    def gnss_covariance(self) -> FloatArray:
+        """(3, 3) the common GNSS offset's covariance in the local frame (x east, y north, z up)."""
+        h, v = self.pose_bias_std_m, self.pose_bias_height_std_m
+        return np.diag([h * h, h * h, v * v])
+
     def height_count(self, drive_pasts: int) -> int:
         """How many height offsets a fit of `drive_pasts` drive-pasts has: one each, or none."""
         return drive_pasts if self.drive_past_heights else 0
@@ -188,7 +210,8 @@ class ModelParams:
 @dataclass(frozen=True, slots=True)
 class ModelFit:
     """The joint fit. Pose as in `refinement.Refinement` (local frame); covariance (6, 6) of [w, C], the
-    marginal block of the full N_PARAMS-parameter sandwich covariance, plus pose_bias_std_m^2 on C.
+    marginal block of the full N_PARAMS-parameter sandwich covariance, plus the common GNSS offset's
+    (ModelParams.gnss_covariance) on C.
 
     time_shift_s / time_shift_std_s: delta (the box stamped t shows the trajectory at t - delta, on the
     image's middle row); readout_s / readout_std_s: the rolling shutter's readout time (a box centred on row
@@ -529,8 +552,11 @@ class _Model:
 
     # Raw tight boxes of the template and the points forming their edges.
     def raw(self, x: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation]:
+        return self.raw_at(x, self.poses_at(x))
+
+    def raw_at(self, x: FloatArray, poses: FloatArray) -> tuple[Boxes, FloatArray, IntArray, Rotation]:
+        """`raw` with the vehicle at the given poses (N, 6) instead of x's."""
         R, C = _pose_from_params(x[_POSE], self.R0, self.C0)
-        poses = self.poses_at(x)
         world = body_points_to_world(poses, template_points(x[_SHAPE], self.vehicle), self.vehicle)
         n, k = world.shape[:2]
         cam = _camera_points(world.reshape(-1, 3), R, C)
@@ -697,7 +723,7 @@ def _assemble(
     covariance_scene = sandwich + (vectors * np.maximum(values, 0.0)) @ vectors.T
     covariance_full = covariance_scene / np.outer(scale, scale)
     pose_cov = covariance_full[:6, :6].copy()
-    pose_cov[3:, 3:] += params.pose_bias_std_m**2 * np.eye(3)
+    pose_cov[3:, 3:] += params.gnss_covariance()
     R, C = _pose_from_params(x[_POSE], model.R0, model.C0)
     model_boxes = model._cache["model"]
     residuals = np.full(data.boxes.shape, np.nan)
@@ -1182,13 +1208,13 @@ def _holdout_statistic(
     r = np.clip(residuals, -3.0 * sigma, 3.0 * sigma)
     # Woodbury: C^-1 = (D + J S J^T)^-1 = D^-1 - D^-1 J (S^-1 + J^T D^-1 J)^-1 J^T D^-1.
     inv_d = 1.0 / sigma**2
-    # Each drive-past's positions carry their own GNSS offset (pose_bias_std_m per axis): to the boxes of
-    # the left-out one it looks like a shift of the camera centre, so it joins the prediction's covariance.
+    # Each drive-past's positions carry their own GNSS offset (ModelParams.gnss_covariance): to the boxes
+    # of the left-out one it looks like a shift of the camera centre, so it joins the prediction's covariance.
     # With height offsets, the left-out drive-pasts' own are unknown to the others: their prior.
     S = np.zeros((len(x), len(x)))
     S[:N_PARAMS, :N_PARAMS] = loo.full_covariance[:N_PARAMS, :N_PARAMS]
     S[N_PARAMS:, N_PARAMS:] = params.drive_past_height_std_m**2 * np.eye(len(x) - N_PARAMS)
-    S[3:6, 3:6] += params.pose_bias_std_m**2 * np.eye(3)
+    S[3:6, 3:6] += params.gnss_covariance()
     inner = _inverse(_inverse(S) + J.T @ (inv_d[:, None] * J))
 
     def c_inv(M: FloatArray) -> FloatArray:
@@ -1409,24 +1435,92 @@ def consider_moves(
     data could not tell from 0 is known only to their std). (0, N_PARAMS) when every std is 0."""
     if point_std_m <= 0.0 and shift_std_px <= 0.0 and readout_std_s <= 0.0:
         return np.zeros((0, N_PARAMS + len(fit.height_offsets_m)))
-    model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
-    if model.data_rows < 2 * len(x):
-        return np.zeros((0, len(x)))
-    if readout_std_s > 0.0:
-        model.set_skew(x, always=True)  # the readout moves the edges apart as well as the box's time
-    model.weigh(x)  # the rows weighted as the fit's second pass weighted them
-    r_all, J_all = model.residuals(x), model.jacobian(x)
-    m = model.data_rows
-    weights = _robust_weights(r_all[:m], params.loss, model.f_scale)  # type: ignore[arg-type]
-    Js, scale, A, _ = _normal_matrix(model, J_all, weights, _scene_range(model, fit.camera_centre))
-    A_inv = _inverse(A)
+    response = _Response.of(fit, tracks, trajectory, camera, vehicle, params, readout_std_s > 0.0)
+    if response is None:
+        return np.zeros((0, N_PARAMS + len(fit.height_offsets_m)))
+    model, x = response.model, response.x
     changes = [_OFFSET_FROM_BIAS[model.edge_index, :2].T * shift_std_px] if shift_std_px > 0.0 else []
     if point_std_m > 0.0:
         changes.append(_displaced_point_changes(model, x, vehicle, camera, params, point_std_m))
-    rows = np.vstack(changes) / model.data_scale if changes else np.zeros((0, m))  # (K, m) in row units
-    if readout_std_s > 0.0:
-        rows = np.vstack([rows, readout_std_s * J_all[:m, _READOUT]])  # the Jacobian is in row units
-    return np.asarray(-(rows * weights) @ Js @ A_inv / scale, dtype=np.float64)
+    rows = np.vstack(changes) / model.data_scale if changes else np.zeros((0, model.data_rows))
+    if readout_std_s > 0.0:  # the Jacobian is in row units
+        rows = np.vstack([rows, readout_std_s * response.J_all[: model.data_rows, _READOUT]])
+    return response.moves(rows)
+
+
+def drive_past_gnss_moves(
+    fit: ModelFit,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> FloatArray:
+    """The fit's response (3 K, N_PARAMS) to each drive-past's positions moved by its own GNSS error
+    (ModelParams.drive_past_gnss_std_m: east, north, then height, per drive-past in turn), as consider
+    parameters (see consider_moves): the pose columns' outer product is their part of the pose's covariance.
+    The offset common to every pose is the fit's own covariance's (ModelParams.gnss_covariance)."""
+    horizontal, height = params.drive_past_gnss_std_m
+    none = np.zeros((0, N_PARAMS + len(fit.height_offsets_m)))
+    if max(horizontal, height) <= 0.0:
+        return none
+    response = _Response.of(fit, tracks, trajectory, camera, vehicle, params, False)
+    if response is None:
+        return none
+    model, x = response.model, response.x
+    bi, ei = model.box_index, model.edge_index
+    base = model.biased(model.raw(x)[0], x[_BIAS])[bi, ei]
+    poses = model.poses_at(x)
+    drive_past = model.data.drive_past[bi]
+    rows: list[FloatArray] = []
+    for axis, std in enumerate((horizontal, horizontal, height)):
+        moved = poses.copy()
+        moved[:, axis] += std
+        change = model.biased(model.raw_at(x, moved)[0], x[_BIAS])[bi, ei] - base
+        rows.extend(np.where(drive_past == k, change, 0.0) for k in range(int(drive_past.max()) + 1))
+    order = np.arange(len(rows)).reshape(3, -1).T.ravel()  # drive-past major: east, north, height
+    return response.moves(np.array(rows)[order] / model.data_scale)
+
+
+@dataclass(frozen=True, slots=True)
+class _Response:
+    """A fit's linear response to a change of its model boxes: the model rebuilt on the fit's boxes, its rows
+    weighted as the fit's second pass weighted them, and the normal matrix there."""
+
+    model: _Model
+    x: FloatArray
+    J_all: FloatArray
+    weights: FloatArray
+    Js: FloatArray
+    A_inv: FloatArray
+    scale: FloatArray
+
+    @staticmethod
+    def of(
+        fit: ModelFit,
+        tracks: Sequence[MatchedTrack],
+        trajectory: Trajectory,
+        camera: CameraModel,
+        vehicle: VehicleProfile,
+        params: ModelParams,
+        readout_skew: bool,
+    ) -> _Response | None:
+        """None where the boxes are too few for the parameters. `readout_skew`: the data's skew set even
+        where the readout is held (the readout moves the edges apart as well as the box's time)."""
+        model, x = _model_of(fit, tracks, trajectory, camera, vehicle, params)
+        if model.data_rows < 2 * len(x):
+            return None
+        if readout_skew:
+            model.set_skew(x, always=True)
+        model.weigh(x)
+        r_all, J_all = model.residuals(x), model.jacobian(x)
+        weights = _robust_weights(r_all[: model.data_rows], params.loss, model.f_scale)  # type: ignore[arg-type]
+        Js, scale, A, _ = _normal_matrix(model, J_all, weights, _scene_range(model, fit.camera_centre))
+        return _Response(model, x, J_all, weights, Js, _inverse(A), scale)
+
+    def moves(self, rows: FloatArray) -> FloatArray:
+        """(K, parameters): the fit's move for each row (K, data rows) of model-box changes in row units."""
+        return np.asarray(-(rows * self.weights) @ self.Js @ self.A_inv / self.scale, dtype=np.float64)
 
 
 def _displaced_point_changes(

@@ -90,7 +90,7 @@ def test_the_clocks_std_adds_its_parts_in_quadrature_and_the_report_names_them()
     joint = joint_fit(candidate, scene, model, 0.01)
     final = final_fit(joint, scene, model, 0.9)
     names = [name for name, _ in final.time_offset_parts]
-    assert names == ["fit", "drive-pasts", "body", "held readout"]
+    assert names == ["fit", "drive-pasts", "body", "held readout", "gnss"]
     assert final.time_offset_parts[0][1] == joint.time_offset_std_s  # the data's, held or not
     total = math.sqrt(sum(std**2 for _, std in final.time_offset_parts))
     assert final.time_offset_std_s == pytest.approx(total, rel=1e-12)
@@ -157,7 +157,7 @@ def test_std_parts_add_up_to_the_largest_std_in_quadrature(
     shape = _spd(shape_m, scale) if body else np.zeros((6, 6))
     readout = np.zeros((6, 6)) if readout_m is None else _spd(readout_m, scale)
     total = combined + shape + readout
-    position, rotation = std_parts(total, fit, shape, gnss, readout)
+    position, rotation = std_parts(total, fit, shape, gnss**2 * np.eye(3), readout, np.zeros((6, 6)))
     largest_m, largest_deg = largest_stds(total)
     assert math.sqrt(sum(std**2 for _, std in position)) == pytest.approx(largest_m, rel=1e-6)
     assert math.sqrt(sum(std**2 for _, std in rotation)) == pytest.approx(largest_deg, rel=1e-6)
@@ -177,7 +177,7 @@ def test_std_parts_name_the_source_that_dominates() -> None:
     scatter = np.diag([1e-6, 1e-6, 1e-6, 0.3**2, 0.01**2, 0.01**2])  # drive-pasts disagree along x
     shape = np.diag([0.0, 0.0, 0.004**2, 0.0, 0.0, 0.2**2])  # the body: height, and a turn about z
     total = dominating_covariance(fit, scatter) + shape
-    position, rotation = std_parts(total, fit, shape, 0.05, np.zeros((6, 6)))
+    position, rotation = std_parts(total, fit, shape, 0.05**2 * np.eye(3), np.zeros((6, 6)), np.zeros((6, 6)))
     # The largest position std is along x: the scatter's 0.3 m over the fit's 0.01 m and the GNSS 0.05 m.
     assert dict(position) == pytest.approx(
         {"fit": 0.01, "gnss": 0.05, "drive-pasts": math.sqrt(0.3**2 - 0.01**2 - 0.05**2)}
@@ -185,5 +185,78 @@ def test_std_parts_name_the_source_that_dominates() -> None:
     assert dict(rotation) == pytest.approx({"fit": math.degrees(1e-3), "body": math.degrees(0.004)})
     # A readout held at 0 that turns the camera about x by 0.01 rad is named as its own source there.
     readout = np.diag([0.01**2, 0.0, 0.0, 0.0, 0.0, 0.0])
-    _, rotation = std_parts(total + readout, fit, shape, 0.05, readout)
+    _, rotation = std_parts(total + readout, fit, shape, 0.05**2 * np.eye(3), readout, np.zeros((6, 6)))
     assert dict(rotation) == pytest.approx({"fit": math.degrees(1e-3), "readout": math.degrees(0.01)})
+    # Drive-pasts whose GNSS heights differ turn the camera: that is the GNSS's, not the fit's.
+    wander = np.diag([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    wander[1, 1] = 0.008**2
+    position, rotation = std_parts(total + wander, fit, shape, 0.05**2 * np.eye(3), np.zeros((6, 6)), wander)
+    assert dict(rotation) == pytest.approx({"fit": math.degrees(1e-3), "gnss": math.degrees(0.008)})
+    assert dict(position)["gnss"] == pytest.approx(0.05)
+
+
+GNSS = ModelParams(drive_past_gnss_std_m=(0.03, 0.06))  # each drive-past's own GNSS error, 3 / 6 cm
+
+
+def _drive_past_gnss_case() -> tuple[Scene, list[MatchedTrack], vehicle_model.ModelFit, np.ndarray]:
+    """Two drive-pasts a minute apart, exact cuboid boxes, the model fitted from the true pose; and its
+    response to each drive-past's GNSS error (vehicle_model.drive_past_gnss_moves)."""
+    scene, tracks = _scene(60.0)
+    R, t = true_pose()
+    fit = vehicle_model.fit_vehicle_model(R, t, tracks, scene.trajectory, CAMERA, VEHICLE, ModelParams())
+    moves = vehicle_model.drive_past_gnss_moves(fit, tracks, scene.trajectory, CAMERA, VEHICLE, GNSS)
+    # Off by default (ModelParams.drive_past_gnss_std_m).
+    none = vehicle_model.drive_past_gnss_moves(fit, tracks, scene.trajectory, CAMERA, VEHICLE, ModelParams())
+    assert none.shape == (0, vehicle_model.N_PARAMS)
+    return scene, tracks, fit, moves
+
+
+def test_each_drive_pasts_gnss_moves_add_up_to_the_common_offset() -> None:
+    # Every position moved by the same offset moves the camera with it, unturned: the drive-pasts' responses
+    # along one axis add up to exactly that (the fit is linear there, and translation-equivariant).
+    _, _, _, moves = _drive_past_gnss_case()
+    horizontal, height = GNSS.drive_past_gnss_std_m
+    assert moves.shape == (6, vehicle_model.N_PARAMS)
+    for axis, std in enumerate((horizontal, horizontal, height)):
+        common = moves[axis::3].sum(axis=0)
+        expected = np.zeros(6)
+        expected[3 + axis] = std
+        assert np.allclose(common[:6], expected, atol=2e-3 * std), (axis, common)
+        assert abs(common[vehicle_model.TIME_SHIFT]) < 1e-5  # s
+        assert np.all(np.abs(common[7:]) < 1e-3)  # template (m), convention (px, scale), readout (s)
+    # ... while each drive-past alone turns the camera (the two lanes' height difference is a roll).
+    assert np.linalg.norm(moves[2, :3]) > 1e-4
+
+
+def test_a_drive_past_raised_by_its_gnss_std_moves_the_refit_as_predicted() -> None:
+    scene, tracks, fit, moves = _drive_past_gnss_case()
+    _, height = GNSS.drive_past_gnss_std_m
+    raised = scene.trajectory.poses.copy()
+    second = scene.trajectory.stamps >= tracks[1].stamps[0] - 10**9
+    raised[second, 2] += height
+    trajectory = Trajectory(scene.trajectory.stamps, raised)
+    refit = vehicle_model.fit_vehicle_model(
+        fit.R_cam_from_local, fit.t_cam_from_local, tracks, trajectory, CAMERA, VEHICLE, ModelParams()
+    )
+    moved_centre = refit.camera_centre - fit.camera_centre
+    predicted = moves[5, 3:6]  # drive-past 2's height row, the camera centre's columns
+    assert np.linalg.norm(predicted) > 0.01
+    assert np.linalg.norm(moved_centre - predicted) < 0.05 * np.linalg.norm(predicted)
+
+
+def test_the_final_fit_adds_and_reports_each_drive_pasts_gnss_error_where_it_is_set() -> None:
+    scene, tracks = _scene(60.0)
+    pose = true_pose()
+    candidate = refine_group(tracks, [hypothesis(0, pose), hypothesis(1, pose)], scene)
+    silent = final_fit(joint_fit(candidate, scene, ModelParams(), 0.01), scene, ModelParams(), 0.9)
+    reported = final_fit(joint_fit(candidate, scene, GNSS, 0.01), scene, GNSS, 0.9)
+    assert not silent.gnss_covariance.any() and "GNSS" not in silent.report(0).notes[0]
+    # The same boxes and pose, more uncertain by exactly the drive-pasts' GNSS part, which the note names.
+    assert np.allclose(reported.fit.camera_centre, silent.fit.camera_centre, atol=1e-9)
+    without = reported.covariance - reported.gnss_covariance
+    assert np.allclose(without, silent.covariance, rtol=1e-6, atol=1e-12)
+    assert reported.rotation_std_deg > silent.rotation_std_deg
+    note = reported.report(0).notes[0]
+    assert "each drive-past's own GNSS error (3.0 cm across, 6.0 cm in height)" in note
+    _, rotation = reported.std_parts()
+    assert dict(rotation)["gnss"] > dict(rotation)["fit"]
