@@ -403,7 +403,7 @@ def coverage_line(runs: Sequence[Run], sigmas: float = 3.0) -> str:
     )
 
 
-def run_seed(task: tuple[str, int, bool, float | None]) -> list[Run]:
+def run_seed(task: tuple[str, int, bool, float | None, float | None]) -> list[Run]:
     """simulate(preset, seed), calibrate() every camera, evaluate: one record per camera."""
     import numpy as np
 
