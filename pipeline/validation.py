@@ -45,8 +45,8 @@ STD_SOURCES = {
     "drive-pasts": "the drive-pasts' disagreement: the pose moves when one of them is left out",
     "body": "the vehicle's body shape, which the template cannot describe (and the detector's box "
     "convention): the same in every drive-past, so more of them do not lower it",
-    "gnss": "the vehicle's GNSS error: its offset common to every pose (and each drive-past's own, where "
-    "set)",
+    "gnss": "the vehicle's GNSS error: its offset common to every pose and each drive-past's own wander "
+    "(its profile's gnss_wander_m)",
     "readout": "the camera's rolling-shutter readout, which the data could not tell from 0 (held there)",
 }
 

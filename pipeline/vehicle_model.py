@@ -128,12 +128,8 @@ class ModelParams:
     # apart. Unlike the common offset that turns the camera: a height difference between drive-pasts in
     # different lanes looks like a roll. Propagated as consider parameters (drive_past_gnss_moves): without
     # them, boxes of the cuboid itself from a perfect detector and a GNSS receiver wandering 3 / 6 cm gave
-    # rotations 0.17-0.20 deg off with a reported std of 0.03-0.05 deg (docs/method.md, "Each drive-past's
-    # GNSS error"). Off (0) by default: neither a fixed value nor the accuracy a receiver reports is the
-    # wander (the first simulator's poses report their 7.5 cm of white noise and do not wander; the realistic
-    # world's CAMs report 1.4 / 2.8 cm and wander 3 / 6 cm), and 3 / 6 cm for every track refused every
-    # sil-west camera of the first simulator's world, whose drive-pasts agree to 0.05 deg. Set it where the
-    # vehicle's positioning is known.
+    # rotations 0.17-0.20 deg off with a reported std of 0.03-0.05 deg (docs/method.md, "The GNSS
+    # error in the uncertainty"). calibrate() sets it from the vehicle's profile (its gnss_wander_m).
     drive_past_gnss_std_m: tuple[float, float] = (0.0, 0.0)
     min_sigma_px: float = 0.5
     min_depth_m: float = 0.1

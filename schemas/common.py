@@ -28,6 +28,7 @@ STAMP_NS_MAX = 7_258_118_400_000_000_000
 
 StampNs = Annotated[int, Field(ge=STAMP_NS_MIN, le=STAMP_NS_MAX, description="ns since the Unix epoch")]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+GnssStd = Annotated[float, Field(ge=0.0, le=10.0, allow_inf_nan=False, description="m")]
 # Boxes may reach past the image border, but never by more than any image is wide.
 PixelCoord = Annotated[float, Field(ge=-1e5, le=1e5, allow_inf_nan=False, description="px")]
 # The one identifier pattern (rsu, camera ids): safe in a Zenoh key and a file name. IDENTIFIER checks a
@@ -172,6 +173,13 @@ class VehicleProfile(StrictModel):
     width: float = Field(gt=0.0, le=5.0, allow_inf_nan=False, description="m")
     height: float = Field(gt=0.0, le=6.0, allow_inf_nan=False, description="m")
     imu_offset: Vec3 = Field(description="pose reference point [x, y, z] in the vehicle box frame, m")
+    # How far the vehicle's reported positions wander between drive-pasts minutes apart (1 sigma; across,
+    # in height): RTK fixed a few centimetres, twice that in height; 0 for a track known to hold (e.g. post-
+    # processed). The final fit carries it into the pose's uncertainty (vehicle_model.drive_past_gnss_moves).
+    gnss_wander_m: tuple[GnssStd, GnssStd] = Field(
+        default=(0.03, 0.06),
+        description="GNSS wander between drive-pasts, 1 sigma [horizontal, height], m",
+    )
 
 
 # A world frame is a UTM zone named by its EPSG code, or LOCAL_CRS: the poses' own local metric frame

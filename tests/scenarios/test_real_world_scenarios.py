@@ -139,6 +139,10 @@ def test_the_reported_time_offset_std_covers_the_clocks_error(preset: str, seed:
     assert result.time_offset_ns is not None and result.time_offset_std_ns is not None
     assert abs(result.time_offset_ns / 1e6 - true_offset_ms) <= 3.0 * result.time_offset_std_ns / 1e6
     assert "(in quadrature: fit" in _stage_notes(outcome, "final fit")
+    # The vehicle's GNSS wander (its profile's default, RTK fixed) is in the uncertainty, and said.
+    assert "each drive-past's own GNSS error (3.0 cm across, 6.0 cm in height)" in _stage_notes(
+        outcome, "final fit"
+    )
     _assert_right_or_refused(outcome, evaluation)
 
 

@@ -58,6 +58,10 @@ def test_each_camera_draws_a_rolling_shutter_readout_and_the_ideal_world_has_non
     assert high_s > 0.0 and low_s * 1e9 <= north.ground_truth["north"].readout_ns <= high_s * 1e9
     ideal = simulate(shrink_scene(PRESETS["sil-north"], traffic=5, ideal=True), seed=4)
     assert ideal.ground_truth["north"].readout_ns == 0
+    # Its vehicle's poses drift across but their heights do not wander: its profile says so; the real
+    # world's CAM vehicle keeps the profile's RTK default.
+    assert ideal.vehicle.gnss_wander_m == (0.03, 0.0)
+    assert north.vehicle.gnss_wander_m == (0.03, 0.06)
 
 
 def test_a_rolling_shutter_shows_each_box_later_by_its_rows_share_of_the_readout() -> None:
