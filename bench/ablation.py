@@ -1,7 +1,7 @@
 """What each part of the realistic world costs: bench.accuracy's runs with parts of that world taken out.
 
     python -m bench.ablation --remove body,detector --presets sil-north,crowned-road --seeds 3
-    python -m bench.ablation --remove body,detector --drive-past-gnss 0.03,0.06 --seeds 3
+    python -m bench.ablation --remove body,detector --gnss-wander 0,0 --seeds 3
 
 Every run is bench.accuracy's (simulate, calibrate every camera on the assumed clock 0, evaluate), in the
 realistic world with the named parts removed from it:
@@ -14,8 +14,9 @@ realistic world with the named parts removed from it:
 
 An instrument, not a world: the parts are switched off by replacing the simulator's functions and
 settings in the worker processes (sim.simulate's body and detector, sim.v2x.GnssSpec.rtk_fixed), so what
-is measured is exactly the realistic world less those parts. `--drive-past-gnss H,V` sets the final fit's
-per-drive-past GNSS std (vehicle_model.ModelParams.drive_past_gnss_std_m) for the runs. Prints, per
+is measured is exactly the realistic world less those parts. `--gnss-wander H,V` gives the calibration
+vehicle's profile that wander (VehicleProfile.gnss_wander_m, which the final fit takes for each drive-past's
+GNSS error) instead of the world's default. Prints, per
 setting, the accepted runs, false accepts, accepted runs beyond 3 reported std, and the error and std of
 the poses within 1 m / 1 deg.
 """
@@ -35,9 +36,8 @@ PARTS = ("body", "corners", "detector", "gnss", "gnss-height", "gnss-wander")
 CORE = "sil-north,sil-south,sil-west,dense-traffic,occluded,slope,crowned-road,latency,suv,van"
 
 
-def _remove(parts: frozenset[str], drive_past_gnss: tuple[float, float] | None) -> None:
+def _remove(parts: frozenset[str], gnss_wander: tuple[float, float] | None) -> None:
     """Switch the named parts of the realistic world off in this process (see the module)."""
-    import pipeline.calibrate as calibrate
     import sim.presets as presets
     import sim.shapes as shapes
     import sim.simulate as simulate
@@ -73,10 +73,14 @@ def _remove(parts: frozenset[str], drive_past_gnss: tuple[float, float] | None) 
             for name in ranges:
                 if name.endswith("radius_m") and not name.startswith("wheel"):
                     ranges[name] = (0.01, 0.01)
-    if drive_past_gnss is not None:
-        default = calibrate.PipelineParams
-        model = replace(default().model, drive_past_gnss_std_m=drive_past_gnss)
-        calibrate.PipelineParams = lambda: replace(default(), model=model)  # type: ignore[assignment, misc]
+    if gnss_wander is not None:
+        profiled = simulate._calibration_body
+
+        def said(config: Any, rng: Any) -> Any:
+            shape, vehicle = profiled(config, rng)
+            return shape, vehicle.model_copy(update={"gnss_wander_m": gnss_wander})
+
+        simulate._calibration_body = said
 
 
 def _run(task: tuple[str, int]) -> list[dict[str, Any]]:
@@ -129,7 +133,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--presets", default=CORE, help="comma-separated presets (default: the core ones)")
     parser.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
     parser.add_argument(
-        "--drive-past-gnss", type=_pair, default=None, metavar="H,V", help="per-drive-past std (m)"
+        "--gnss-wander",
+        type=_pair,
+        default=None,
+        metavar="H,V",
+        help="the vehicle profile's gnss_wander_m (m)",
     )
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--json", default=None, help="also write every run here")
@@ -140,13 +148,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.seeds < 1 or args.jobs < 1:
         parser.error("--seeds and --jobs must be at least 1")
     tasks = [(preset, seed) for preset in args.presets.split(",") for seed in range(args.seeds)]
-    with ProcessPoolExecutor(args.jobs, initializer=_remove, initargs=(parts, args.drive_past_gnss)) as pool:
+    with ProcessPoolExecutor(args.jobs, initializer=_remove, initargs=(parts, args.gnss_wander)) as pool:
         runs = [run for batch in pool.map(_run, tasks) for run in batch]
     removed = ", ".join(sorted(parts)) or "nothing"
-    print(f"removed {removed}; per-drive-past GNSS std {args.drive_past_gnss or 'off'}: {summary(runs)}")
+    wander = "as drawn" if args.gnss_wander is None else f"{args.gnss_wander}"
+    print(f"removed {removed}; the vehicle's GNSS wander {wander}: {summary(runs)}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as out:
-            json.dump({"removed": sorted(parts), "drive_past_gnss": args.drive_past_gnss, "runs": runs}, out)
+            json.dump({"removed": sorted(parts), "gnss_wander": args.gnss_wander, "runs": runs}, out)
     return 0
 
 

@@ -21,7 +21,8 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 def test_without_body_detector_and_gnss_errors_a_realistic_scene_is_calibrated(tmp_path: Path) -> None:
     # sil-south seed 0 in the realistic world is refused (0.22 m off, std 0.20 m, session 19); with the
     # calibration vehicle drawn as its cuboid, an exact detector and a perfect receiver it is accepted
-    # within centimetres (0.04 m): what is left is the CAMs' rate, the latency and the road.
+    # within centimetres (0.04 m): what is left is the CAMs' rate, the latency and the road (its profile
+    # still says 3 / 6 cm of wander, which the std carries).
     out = tmp_path / "runs.json"
     done = _run(
         "--remove",
@@ -36,7 +37,9 @@ def test_without_body_detector_and_gnss_errors_a_realistic_scene_is_calibrated(t
         str(out),
     )
     assert done.returncode == 0, done.stderr
-    assert "removed body, detector, gnss; per-drive-past GNSS std off: 1 runs: 1 accepted" in done.stdout
+    assert (
+        "removed body, detector, gnss; the vehicle's GNSS wander as drawn: 1 runs: 1 accepted" in done.stdout
+    )
     runs = json.loads(out.read_text())["runs"]
     assert runs[0]["verdict"] == "accepted" and runs[0]["position_error_m"] < 0.1
 
@@ -46,6 +49,8 @@ def test_an_unknown_part_is_a_one_line_error() -> None:
     assert done.returncode == 2
     assert "--remove: unknown part(s) weather (known: body, corners" in done.stderr
     assert "Traceback" not in done.stderr
+    done = _run("--gnss-wander", "0.03,-1")
+    assert done.returncode == 2 and "--gnss-wander" in done.stderr and "Traceback" not in done.stderr
 
 
 def test_the_summary_counts_accepted_runs_beyond_their_stds() -> None:
