@@ -197,12 +197,12 @@ def calibrate(
     the independent per-track hypothesis fits; the caller may pass a process pool's map to use several cores
     (results are identical), the pipeline itself starts no workers.
     """
-    # One BLAS / OpenMP thread for the whole job: every matrix here is tiny (at most a few thousand rows by
-    # 6 columns) and the worker threads only add hand-off cost; on a busy 2-core RSU a (4000, 6) SVD took
-    # 84 ms with OpenBLAS's 2 threads against 1.4 ms with one. The previous limits are restored on return.
     # Each drive-past's own GNSS error, as the vehicle's profile gives it, into the final fit's uncertainty.
     horizontal, height = inputs.vehicle.gnss_wander_m
     params = replace(params, model=replace(params.model, drive_past_gnss_std_m=(horizontal, height)))
+    # One BLAS / OpenMP thread for the whole job: every matrix here is tiny (at most a few thousand rows by
+    # 6 columns) and the worker threads only add hand-off cost; on a busy 2-core RSU a (4000, 6) SVD took
+    # 84 ms with OpenBLAS's 2 threads against 1.4 ms with one. The previous limits are restored on return.
     with threadpool_limits(limits=1):
         # Image tracks do not depend on the clock: every pass shares them.
         tracked = _Tracked(configured_offset_ns=inputs.time_offset_ns)
