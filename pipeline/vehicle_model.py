@@ -1465,17 +1465,18 @@ def drive_past_gnss_moves(
         return none
     model, x = response.model, response.x
     bi, ei = model.box_index, model.edge_index
-    base = model.biased(model.raw(x)[0], x[_BIAS])[bi, ei]
     poses = model.poses_at(x)
-    drive_past = model.data.drive_past[bi]
-    rows: list[FloatArray] = []
+    base = model.biased(model.raw_at(x, poses)[0], x[_BIAS])[bi, ei]
+    changes = []
     for axis, std in enumerate((horizontal, horizontal, height)):
         moved = poses.copy()
         moved[:, axis] += std
-        change = model.biased(model.raw_at(x, moved)[0], x[_BIAS])[bi, ei] - base
-        rows.extend(np.where(drive_past == k, change, 0.0) for k in range(int(drive_past.max()) + 1))
-    order = np.arange(len(rows)).reshape(3, -1).T.ravel()  # drive-past major: east, north, height
-    return response.moves(np.array(rows)[order] / model.data_scale)
+        changes.append(model.biased(model.raw_at(x, moved)[0], x[_BIAS])[bi, ei] - base)
+    drive_past = model.data.drive_past[bi]
+    rows = [
+        np.where(drive_past == k, change, 0.0) for k in range(int(drive_past.max()) + 1) for change in changes
+    ]
+    return response.moves(np.array(rows) / model.data_scale)
 
 
 @dataclass(frozen=True, slots=True)
