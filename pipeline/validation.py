@@ -55,10 +55,13 @@ STD_SOURCES = {
 _POSITION_STD, _ROTATION_STD = "position std = ", "rotation std = "
 
 
-def imprecise_only(reasons: Sequence[str]) -> bool:
-    """Whether a refusal's reasons (`validate`'s) are all std gates: a pose whose drive-pasts agree with each
-    other and with the boxes, known too loosely to accept."""
-    return bool(reasons) and all(reason.startswith((_POSITION_STD, _ROTATION_STD)) for reason in reasons)
+def imprecise_only(reasons: Sequence[str], tolerated: Sequence[str] = ()) -> bool:
+    """Whether a refusal's reasons (`validate`'s) are all std gates, or among `tolerated` (the caller's: the
+    drive-pasts' disagreement where it lies within the gates' limits): a pose whose drive-pasts agree with
+    each other and with the boxes, known too loosely to accept."""
+    return bool(reasons) and all(
+        reason.startswith((_POSITION_STD, _ROTATION_STD)) or reason in tolerated for reason in reasons
+    )
 
 
 def validate(evidence: ValidationEvidence, gates: GatesConfig) -> Verdict:

@@ -179,3 +179,12 @@ def test_a_refusal_on_stds_alone_is_told_from_one_on_other_gates() -> None:
     assert not imprecise_only(validate(replace(imprecise, traversals=1), GatesConfig()).reasons)
     assert not imprecise_only(validate(replace(GOOD, delta_p_mean_m=0.8), GatesConfig()).reasons)
     assert not imprecise_only(validate(GOOD, GatesConfig()).reasons)  # accepted: no reasons
+    # The caller's tolerated reasons (calibrate: drive-pasts that disagree within the gates' limits) count
+    # as imprecision; any other reason does not.
+    disagree = "traversals disagree by 0.28 m / 0.28 deg: traversal 3's boxes pull the others' pose"
+    both = validate(replace(imprecise, extra_reasons=(disagree,)), GatesConfig()).reasons
+    assert not imprecise_only(both)
+    assert imprecise_only(both, (disagree,))
+    assert not imprecise_only(
+        validate(replace(GOOD, extra_reasons=(disagree,), traversals=1), GatesConfig()).reasons, (disagree,)
+    )

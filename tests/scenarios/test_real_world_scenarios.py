@@ -110,6 +110,28 @@ def test_no_calibration_vehicle_is_refused_on_every_clock() -> None:
     assert "no two hypotheses agree" in reasons or "no image track" in reasons
 
 
+def test_a_refusal_on_precision_alone_does_not_search_the_clock_again() -> None:
+    # sil-north seed 1: the pose is refused on its stds and on drive-pasts that disagree by 0.28 m / 0.28
+    # deg, within the gates' 0.5 m / 0.5 deg: the vehicle's own tracks, on the right clock (0.18 m off,
+    # measured). A search of every clock after that refusal took 6.7 of its 12.3 s and could only repeat
+    # it; the passes are the first and the one on the clock its fit estimated.
+    sim = simulate("sil-north", seed=1)
+    camera = sim.cameras[0]
+    passes: list[str] = []
+    outcome = calibrate(
+        calibration_inputs(sim, camera.camera_id),
+        PipelineParams(),
+        np.random.default_rng(CALIBRATION_SEED),
+        created_at_ns=CREATED_AT_NS,
+        progress=lambda stage, _fraction: passes.append(stage) if stage == "association" else None,
+    )
+    reasons = outcome.result.verdict.reasons
+    assert any(reason.startswith("traversals disagree by") for reason in reasons), reasons
+    assert outcome.imprecise
+    assert len(passes) <= 2
+    assert "after the refusal" not in _stage_notes(outcome, "clock scan")
+
+
 @pytest.mark.parametrize(
     ("preset", "seed", "camera_index"), [("slope", 4, 0), ("sil-west", 0, 1), ("van", 3, 0)]
 )
