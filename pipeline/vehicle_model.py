@@ -1146,11 +1146,14 @@ def _halves_disagree(
     return "", difference
 
 
-def combined_covariance(fit: ModelFit, check: TraversalCheck) -> FloatArray:
-    """The fit's covariance, raised in every direction where the traversals scatter more (jackknife)."""
+def combined_covariance(independent: FloatArray, check: TraversalCheck) -> FloatArray:
+    """The covariance of the errors independent between drive-pasts (6, 6: the fit's, and each drive-past's
+    own GNSS error), raised in every direction where the traversals scatter more (jackknife). The scatter
+    measures those same errors (and what the body does differently in each view), so the larger of the two
+    counts, never their sum."""
     if check.covariance is None:
-        return fit.covariance
-    return dominating_covariance(fit.covariance, check.covariance)
+        return independent
+    return dominating_covariance(independent, check.covariance)
 
 
 def dominating_covariance(A: FloatArray, B: FloatArray) -> FloatArray:

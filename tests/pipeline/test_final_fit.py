@@ -141,6 +141,7 @@ def _spd(draw_matrix: np.ndarray, scale: np.ndarray) -> np.ndarray:
     gnss=st.sampled_from([0.0, 0.05]),
     body=st.booleans(),
     readout_m=st.one_of(st.none(), arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0))),
+    wander_m=st.one_of(st.none(), arrays(np.float64, (6, 6), elements=st.floats(-1.0, 1.0))),
 )
 def test_std_parts_add_up_to_the_largest_std_in_quadrature(
     fit_m: np.ndarray,
@@ -149,15 +150,17 @@ def test_std_parts_add_up_to_the_largest_std_in_quadrature(
     gnss: float,
     body: bool,
     readout_m: np.ndarray | None,
+    wander_m: np.ndarray | None,
 ) -> None:
     scale = np.array([0.002, 0.002, 0.002, 0.1, 0.1, 0.1])  # rad, m
     fit = _spd(fit_m, scale) + 1e-8 * np.eye(6)
     fit[3:, 3:] += gnss**2 * np.eye(3)
-    combined = dominating_covariance(fit, _spd(scatter_m, scale))
+    wander = np.zeros((6, 6)) if wander_m is None else _spd(wander_m, scale)  # each drive-past's GNSS
+    combined = dominating_covariance(fit + wander, _spd(scatter_m, scale))
     shape = _spd(shape_m, scale) if body else np.zeros((6, 6))
     readout = np.zeros((6, 6)) if readout_m is None else _spd(readout_m, scale)
     total = combined + shape + readout
-    position, rotation = std_parts(total, fit, shape, gnss**2 * np.eye(3), readout, np.zeros((6, 6)))
+    position, rotation = std_parts(total, fit, shape, gnss**2 * np.eye(3), readout, wander)
     largest_m, largest_deg = largest_stds(total)
     assert math.sqrt(sum(std**2 for _, std in position)) == pytest.approx(largest_m, rel=1e-6)
     assert math.sqrt(sum(std**2 for _, std in rotation)) == pytest.approx(largest_deg, rel=1e-6)
@@ -167,8 +170,9 @@ def test_std_parts_add_up_to_the_largest_std_in_quadrature(
         assert "body" not in dict(position) and "body" not in dict(rotation)
     if readout_m is None:
         assert "readout" not in dict(position) and "readout" not in dict(rotation)
-    assert dict(position).get("gnss", 0.0) == pytest.approx(gnss)
-    assert "gnss" not in dict(rotation)
+    if wander_m is None:
+        assert dict(position).get("gnss", 0.0) == pytest.approx(gnss)
+        assert "gnss" not in dict(rotation)
 
 
 def test_std_parts_name_the_source_that_dominates() -> None:
@@ -190,9 +194,24 @@ def test_std_parts_name_the_source_that_dominates() -> None:
     # Drive-pasts whose GNSS heights differ turn the camera: that is the GNSS's, not the fit's.
     wander = np.diag([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     wander[1, 1] = 0.008**2
-    position, rotation = std_parts(total + wander, fit, shape, 0.05**2 * np.eye(3), np.zeros((6, 6)), wander)
+    total = dominating_covariance(fit + wander, scatter) + shape
+    position, rotation = std_parts(total, fit, shape, 0.05**2 * np.eye(3), np.zeros((6, 6)), wander)
     assert dict(rotation) == pytest.approx({"fit": math.degrees(1e-3), "gnss": math.degrees(0.008)})
     assert dict(position)["gnss"] == pytest.approx(0.05)
+    # Where the drive-pasts' scatter exceeds their own GNSS error, the scatter is what counts (it shows that
+    # error too): the turn about y is 0.02 rad, not sqrt(0.02^2 + 0.008^2).
+    turned = scatter.copy()
+    turned[1, 1] = 0.02**2
+    total = dominating_covariance(fit + wander, turned) + shape
+    assert largest_stds(total)[1] == pytest.approx(math.degrees(0.02))
+    _, rotation = std_parts(total, fit, shape, 0.05**2 * np.eye(3), np.zeros((6, 6)), wander)
+    assert dict(rotation) == pytest.approx(
+        {
+            "fit": math.degrees(1e-3),
+            "gnss": math.degrees(0.008),
+            "drive-pasts": math.degrees(math.sqrt(0.02**2 - 0.008**2 - 1e-6)),
+        }
+    )
 
 
 GNSS = ModelParams(drive_past_gnss_std_m=(0.03, 0.06))  # each drive-past's own GNSS error, 3 / 6 cm
@@ -251,10 +270,17 @@ def test_the_final_fit_adds_and_reports_each_drive_pasts_gnss_error_where_it_is_
     silent = final_fit(joint_fit(candidate, scene, ModelParams(), 0.01), scene, ModelParams(), 0.9)
     reported = final_fit(joint_fit(candidate, scene, GNSS, 0.01), scene, GNSS, 0.9)
     assert not silent.gnss_covariance.any() and "GNSS" not in silent.report(0).notes[0]
-    # The same boxes and pose, more uncertain by exactly the drive-pasts' GNSS part, which the note names.
+    # The same boxes and pose, more uncertain by the drive-pasts' GNSS part where their scatter did not
+    # already show it (never by more), which the note names.
     assert np.allclose(reported.fit.camera_centre, silent.fit.camera_centre, atol=1e-9)
-    without = reported.covariance - reported.gnss_covariance
-    assert np.allclose(without, silent.covariance, rtol=1e-6, atol=1e-12)
+    assert reported.check.covariance is not None
+    consider = reported.shape_covariance + reported.readout_covariance
+    independent = reported.fit.covariance + reported.gnss_covariance
+    expected = dominating_covariance(independent, reported.check.covariance) + consider
+    assert np.allclose(reported.covariance, expected, rtol=1e-6, atol=1e-12)
+    added = reported.covariance - silent.covariance
+    assert np.linalg.eigvalsh(added).min() > -1e-12
+    assert np.linalg.eigvalsh(reported.gnss_covariance - added).min() > -1e-12
     assert reported.rotation_std_deg > silent.rotation_std_deg
     note = reported.report(0).notes[0]
     assert "each drive-past's own GNSS error (3.0 cm across, 6.0 cm in height)" in note
