@@ -32,6 +32,8 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from typing import Any
 
+from bench.accuracy import beyond_reported, is_false_accept, near_poses
+
 PARTS = ("body", "corners", "detector", "gnss", "gnss-height", "gnss-wander")
 CORE = "sil-north,sil-south,sil-west,dense-traffic,occluded,slope,crowned-road,latency,suv,van"
 
@@ -91,21 +93,13 @@ def _run(task: tuple[str, int]) -> list[dict[str, Any]]:
 
 
 def summary(runs: Sequence[dict[str, Any]]) -> str:
-    """One line: accepted, false accepts, accepted beyond 3 std; the poses within 1 m / 1 deg."""
-    posed = [r for r in runs if r.get("position_std_m") is not None and r.get("position_error_m") is not None]
-
-    def beyond(r: dict[str, Any]) -> bool:
-        return bool(
-            r["position_error_m"] > 3 * r["position_std_m"]
-            or r["rotation_error_deg"] > 3 * r["rotation_std_deg"]
-        )
-
-    accepted = [r for r in posed if r["verdict"] == "accepted"]
-    false = [r for r in accepted if r["position_error_m"] > 0.5 or r["rotation_error_deg"] > 0.5]
-    near = [r for r in posed if r["position_error_m"] < 1.0 and r["rotation_error_deg"] < 1.0]
+    """One line: accepted, false accepts, accepted beyond 3 std; the poses within 1 m / 1 deg (each as
+    bench.accuracy defines it)."""
+    accepted = [r for r in runs if r["verdict"] == "accepted"]
+    near = near_poses(runs)
     line = (
-        f"{len(runs)} runs: {len(accepted)} accepted, {len(false)} false accepts, "
-        f"{sum(map(beyond, accepted))} accepted beyond 3 std; {len(near)} poses within 1 m / 1 deg"
+        f"{len(runs)} runs: {len(accepted)} accepted, {sum(map(is_false_accept, accepted))} false accepts, "
+        f"{sum(map(beyond_reported, accepted))} accepted beyond 3 std; {len(near)} poses within 1 m / 1 deg"
     )
     if not near:
         return line
@@ -115,7 +109,7 @@ def summary(runs: Sequence[dict[str, Any]]) -> str:
         f"{med(r['rotation_error_deg'] for r in near):.3f} deg, std median "
         f"{med(r['position_std_m'] for r in near):.3f} m / "
         f"{med(r['rotation_std_deg'] for r in near):.3f} deg, "
-        f"{sum(map(beyond, near))} beyond 3 std"
+        f"{sum(map(beyond_reported, near))} beyond 3 std"
     )
 
 

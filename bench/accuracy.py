@@ -380,11 +380,10 @@ def std_source(run: Run) -> str | None:
 _SOURCE_TAGS = {"body": "b", "drive-pasts": "d", "fit": "f", "gnss": "g", "readout": "r", "?": "?"}
 
 
-def coverage_line(runs: Sequence[Run], sigmas: float = 3.0) -> str:
-    """How honest the reported stds are over every pose within 1 m and 1 deg of the truth, accepted or
-    refused (the table's `cover` counts accepted runs only, which are few where most are refused): how many
-    lie beyond `sigmas` x their std in position, rotation and time offset."""
-    posed = [
+def near_poses(runs: Sequence[Run]) -> list[Run]:
+    """The runs, accepted or refused, that reached a pose within 1 m and 1 deg of the truth and reported its
+    std."""
+    return [
         r
         for r in runs
         if r.get("position_error_m") is not None
@@ -392,6 +391,13 @@ def coverage_line(runs: Sequence[Run], sigmas: float = 3.0) -> str:
         and r["position_error_m"] <= 1.0
         and r["rotation_error_deg"] <= 1.0
     ]
+
+
+def coverage_line(runs: Sequence[Run], sigmas: float = 3.0) -> str:
+    """How honest the reported stds are over every pose within 1 m and 1 deg of the truth, accepted or
+    refused (the table's `cover` counts accepted runs only, which are few where most are refused): how many
+    lie beyond `sigmas` x their std in position, rotation and time offset."""
+    posed = near_poses(runs)
     position = sum(r["position_error_m"] > sigmas * r["position_std_m"] for r in posed)
     rotation = sum(r["rotation_error_deg"] > sigmas * r["rotation_std_deg"] for r in posed)
     timed = [r for r in posed if r.get("time_offset_std_ms") and r.get("time_offset_error_ms") is not None]

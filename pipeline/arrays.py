@@ -44,21 +44,20 @@ def check_shape(array: Any, spec: str, name: str) -> None:
     """
     if not isinstance(array, np.ndarray):
         raise ShapeError(f"{name}: expected a numpy array ({spec}), got {type(array).__name__}")
-    sizes = _parsed(spec)
+    dims, sizes = _parsed(spec)
     if array.ndim != len(sizes) or any(
         size is not None and size != n for size, n in zip(sizes, array.shape, strict=True)
     ):
-        dims = [d.strip() for d in spec.split(",")] if spec else []
         expected = "(" + ", ".join(dims) + (",)" if len(dims) == 1 else ")")
         raise ShapeError(f"{name}: expected {expected}, got {tuple(array.shape)}")
 
 
 @functools.cache
-def _parsed(spec: str) -> tuple[int | None, ...]:
-    """`check_shape`'s spec as one size per dimension, None for a letter (parsed once per spec: the check
-    runs in the solvers' inner loops)."""
-    dims = [d.strip() for d in spec.split(",")] if spec else []
-    return tuple(int(d) if d.isdigit() else None for d in dims)
+def _parsed(spec: str) -> tuple[tuple[str, ...], tuple[int | None, ...]]:
+    """`check_shape`'s spec as its dimensions and one size per dimension, None for a letter (parsed once per
+    spec: the check runs in the solvers' inner loops)."""
+    dims = tuple(d.strip() for d in spec.split(",")) if spec else ()
+    return dims, tuple(int(d) if d.isdigit() else None for d in dims)
 
 
 def as_float_array(values: Any, spec: str, name: str) -> FloatArray:
