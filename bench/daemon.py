@@ -1261,7 +1261,7 @@ def run_latency(rate: float, quiet_period_s: float, seed: int) -> dict[str, Any]
                         "text": event.text,
                     }
                 )
-            elif event.kind in ("published", "verified", "refused", "failed"):
+            elif event.kind in ("published", "verified", "refused", "failed", "withdrawn"):
                 for job in jobs:
                     if job["camera_id"] == event.camera_id and job["outcome"] is None:
                         job["finished_s"], job["outcome"], job["text"] = now, event.kind, event.text
@@ -1911,7 +1911,8 @@ def print_reverify(r: dict[str, Any]) -> None:
             f"{run['decision'] or '-'}"
         )
     print(
-        f"  compared {r['compared']} of {r['seeds']} (both fits accepted or the second refused); "
+        f"  compared {r['compared']} of {r['seeds']} (the first fit accepted, the second accepted or refused "
+        f"on its precision alone); "
         f"flagged moved: {r['flagged_moved']} (target {r['compared'] if r['moved'] else 0})"
     )
 

@@ -116,7 +116,8 @@ class CameraRuntime:
 class DaemonEvent:
     """Something an operator watching live wants to see (the demo prints these)."""
 
-    kind: str  # entered | left | discarded | job_started | published | verified | refused | failed
+    # entered | left | discarded | job_started | published | verified | refused | failed | withdrawn
+    kind: str
     camera_id: str
     text: str
     traversals: int = 0
@@ -305,6 +306,9 @@ class Daemon:
                         "verified_at_ns": state.verified_at_ns or current.created_at_ns,
                     }
                 )
+            if current is None and state.current_result_id is not None:
+                # Withdrawn (a crash after current.json was removed, before the state was saved), or lost.
+                state = state.model_copy(update={"current_result_id": None, "verified_at_ns": None})
             coverage = coverage_from_config(camera, self._frame) if self._frame is not None else None
             if coverage is None and current is not None:
                 coverage = coverage_from_result(current)
@@ -318,6 +322,8 @@ class Daemon:
             tracker = runtime.tracker
             if runtime.state.used_until_ns is not None:
                 tracker.restore_used_until(runtime.state.used_until_ns)
+            if runtime.state.not_before_ns is not None:
+                tracker.set_not_before(runtime.state.not_before_ns)
             tracker.tick(now_ns)
             log.info(
                 "camera %s: %d traversal(s) in the open window after replaying %d V2X message(s)%s",
@@ -601,6 +607,7 @@ class Daemon:
             window_end_ns=spec.window_end_ns,
             started_ns=started_ns,
             now_ns=now_ns,
+            window_start_ns=spec.window_start_ns,
         )
         for warning in decision.warnings:
             log.warning("camera %s: %s", camera_id, warning)
@@ -611,6 +618,12 @@ class Daemon:
                 reason = f"result {decision.result.result_id} could not be stored: {err}"
                 log.error("camera %s: job %s: %s", camera_id, spec.job_id, reason)
                 decision = storing_failed(decision, state, reason)
+        if decision.withdraw:
+            try:
+                # Before the state: a crash in between leaves no current.json, never a withdrawn one.
+                self.store.withdraw_current(camera_id)
+            except OSError as err:  # still withdrawn in memory and on the bus; the restart finds it again
+                log.error("camera %s: removing current.json failed: %s", camera_id, err)
         try:
             self.store.save_camera_state(camera_id, decision.state)
         except OSError as err:  # the state in memory still answers queries; the next save may succeed
@@ -634,6 +647,15 @@ class Daemon:
             runtime.job_counts[decision.kind] += 1
             if payload is not None and result is not None:
                 runtime.set_current(result, payload)
+            if decision.withdraw:
+                runtime.current = runtime.current_json = None
+        if decision.withdraw:
+            not_before_ns = decision.state.not_before_ns
+            if not_before_ns is not None:
+                tracker = runtime.tracker
+                self._inbox.put(lambda: tracker.set_not_before(not_before_ns))
+            if self._bus is not None:
+                self._bus.withdraw_calibration(camera_id)
         if result is not None:
             # The recorder belongs to the ingest thread: the result channels are written there.
             recorded = result

@@ -14,6 +14,12 @@ The rules (docs/design.md, "Publication" and "Re-verification"):
     says whether the camera moved. Moved: the new result is published and replaces the current one.
     Agrees: only verified_at is refreshed. A fit that used no box newer than the last job's window
     (outcome.newest_track_end_ns) re-verifies nothing and can move nothing.
+  - a refused result refused on its precision alone (pipeline.validation.imprecise_only: std gates only)
+    on new drive-pasts is compared too. Its drive-pasts agree with each other and with the boxes, so a
+    shift beyond the limits (its own larger covariance included) shows the camera moved: the current
+    result is withdrawn, nothing replaces it, and the camera's next jobs use no drive-past that began
+    before the refused job's window (state.not_before_ns). A refusal for any other reason (the tracks may
+    not be the vehicle's) moves nothing.
   - the camera's time offset (state.time_offset_ns) follows every accepted result that estimated one.
 """
 
@@ -28,11 +34,12 @@ import numpy as np
 from daemon.jobs import JobOutcome
 from daemon.state import CameraState
 from pipeline.camera import rvec_from_rotation
+from pipeline.validation import imprecise_only
 from schemas.config import ChangeConfig
 from schemas.results import CalibrationResult, ChangeInfo, JobSummary, Verdict
 
 JobKind = Literal["accepted", "refused", "failed"]
-EventKind = Literal["published", "verified", "refused", "failed"]
+EventKind = Literal["published", "verified", "refused", "failed", "withdrawn"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,6 +53,7 @@ class Decision:
     result: CalibrationResult | None  # to store in the history (change filled in); None for a failed job
     publish: bool  # the result becomes current.json and goes on the bus
     state: CameraState  # the camera's state after the job
+    withdraw: bool = False  # the current result is withdrawn (current.json removed, deleted on the bus)
     warnings: tuple[str, ...] = ()  # for the log: e.g. results that could not be compared
 
 
@@ -58,14 +66,21 @@ def decide(
     window_end_ns: int,
     started_ns: int,
     now_ns: int,
+    window_start_ns: int | None = None,
 ) -> Decision:
     """The Decision for a job that read data up to `window_end_ns`, started at `started_ns` and is handled at
-    `now_ns` (the daemon's clock), on a camera whose current result is `current` (None: not calibrated)."""
+    `now_ns` (the daemon's clock), on a camera whose current result is `current` (None: not calibrated).
+    `window_start_ns`: where the job's window began (the camera's next jobs start there if it moved)."""
     result_json = outcome.result_json
     result = None if result_json is None else CalibrationResult.model_validate_json(result_json)
     warnings: list[str] = []
     verified_at_ns = state.verified_at_ns
-    publish = False
+    publish = withdraw = False
+    # Only a fit that used boxes of a drive-past newer than the last job's window can confirm or overturn
+    # the current result; older drive-pasts alone would just repeat it.
+    is_fresh = outcome.newest_track_end_ns is not None and (
+        state.used_until_ns is None or outcome.newest_track_end_ns > state.used_until_ns
+    )
     if result is None:
         verdict = Verdict(status="refused", reasons=[outcome.error or "the job produced no result"])
         kind: JobKind = "failed"
@@ -73,6 +88,16 @@ def decide(
     elif not result.verdict.is_accepted:
         verdict, kind = result.verdict, "refused"
         text = "refused: " + "; ".join(verdict.reasons)
+        info = _imprecise_change(result, current, change) if is_fresh else None
+        if info is not None:
+            result = result.model_copy(update={"change": info})
+            if info.moved:
+                withdraw = True
+                text = (
+                    f"camera moved {describe_change(info)} by a fit refused only on its precision: "
+                    f"{info.previous_result_id} withdrawn, no calibration until one from the new drive-pasts "
+                    f"is accepted; {text}"
+                )
     elif current is None:
         verdict, kind = result.verdict, "accepted"
         text = "calibrated: result published"
@@ -85,11 +110,6 @@ def decide(
             warnings.append(f"{err}; the new result replaces the current one")
             info = ChangeInfo(previous_result_id=current.result_id, shift_m=0.0, shift_deg=0.0, moved=True)
         result = result.model_copy(update={"change": info})
-        # Only a fit that used boxes of a drive-past newer than the last job's window can confirm or
-        # overturn the current result; older drive-pasts alone would just repeat it.
-        is_fresh = outcome.newest_track_end_ns is not None and (
-            state.used_until_ns is None or outcome.newest_track_end_ns > state.used_until_ns
-        )
         if not is_fresh:
             text = (
                 f"not a re-verification: the fit used no box of a new drive-past "
@@ -101,10 +121,14 @@ def decide(
         else:
             text = f"re-verified: agrees with {current.result_id} ({describe_change(info)})"
             verified_at_ns = now_ns
-    current_id = state.current_result_id
+    current_id, not_before_ns = state.current_result_id, state.not_before_ns
     if publish:
         assert result is not None
         verified_at_ns, current_id = now_ns, result.result_id
+    if withdraw:
+        verified_at_ns, current_id = None, None
+        if window_start_ns is not None:
+            not_before_ns = max(window_start_ns, not_before_ns or 0)
     time_offset_ns, time_offset_std_ns = state.time_offset_ns, state.time_offset_std_ns
     if result is not None and result.verdict.is_accepted and result.time_offset_ns is not None:
         time_offset_ns, time_offset_std_ns = result.time_offset_ns, result.time_offset_std_ns
@@ -125,17 +149,34 @@ def decide(
             "last_reasons": list(verdict.reasons),
             "time_offset_ns": time_offset_ns,
             "time_offset_std_ns": time_offset_std_ns,
+            "not_before_ns": not_before_ns,
         }
     )
     event: EventKind = "published" if publish else ("verified" if kind == "accepted" else kind)
-    return Decision(kind, event, text, verdict, result, publish, new_state, tuple(warnings))
+    if withdraw:
+        event = "withdrawn"
+    return Decision(kind, event, text, verdict, result, publish, new_state, withdraw, tuple(warnings))
+
+
+def _imprecise_change(
+    result: CalibrationResult, current: CalibrationResult | None, change: ChangeConfig
+) -> ChangeInfo | None:
+    """compare_results of a refused `result` with the current one when the refusal is on precision alone
+    (its drive-pasts agree, its pose is known loosely: its covariance widens the limits), else None."""
+    if current is None or not imprecise_only(result.verdict.reasons):
+        return None
+    try:
+        return compare_results(result, current, change)
+    except ValueError:  # no pose, or another frame: nothing to compare
+        return None
 
 
 def storing_failed(decision: Decision, previous: CameraState, reason: str) -> Decision:
     """`decision` after its result could not be stored: nothing published, the job failed with `reason`.
 
-    Not stored, not published: after a restart the queryable must answer what was published. The camera
-    keeps its previous verification and time offset; the job's window still counts as used.
+    Not stored, not published, nothing withdrawn: after a restart the queryable must answer what was
+    published. The camera keeps its previous verification and time offset; the job's window still counts
+    as used.
     """
     verdict = Verdict(status="refused", reasons=[*decision.verdict.reasons, reason])
     last_job = decision.state.last_job
@@ -148,6 +189,7 @@ def storing_failed(decision: Decision, previous: CameraState, reason: str) -> De
             "last_reasons": list(verdict.reasons),
             "time_offset_ns": previous.time_offset_ns,
             "time_offset_std_ns": previous.time_offset_std_ns,
+            "not_before_ns": previous.not_before_ns,
         }
     )
     return replace(
@@ -158,6 +200,7 @@ def storing_failed(decision: Decision, previous: CameraState, reason: str) -> De
         verdict=verdict,
         publish=False,
         state=state,
+        withdraw=False,
     )
 
 

@@ -52,6 +52,12 @@ class CameraState(StrictModel):
         "the prior of the camera's next job",
     )
     time_offset_std_ns: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
+    # Set when a re-verification showed the camera moved but its own fit was refused, so the current result
+    # was withdrawn: drive-pasts that began before this producer stamp (those of the old pose) are never
+    # pooled into the camera's next jobs (daemon.publication, "withdrawn").
+    not_before_ns: StampNs | None = Field(
+        default=None, description="no traversal that began before this stamp is used (the camera moved)"
+    )
 
 
 class StateStore:
@@ -111,6 +117,17 @@ class StateStore:
             if current:
                 write_atomic(self.current_path(result.camera_id), data, self.state_dir)
         return path
+
+    def withdraw_current(self, camera_id: str) -> None:
+        """Remove current.json (the camera moved and no new result replaces it); its history entry stays.
+        Durable: the directory is synced, so a restart never finds the withdrawn result current again."""
+        path = self.current_path(camera_id)
+        with self._lock:
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                return
+            fsync_dir(path.parent)
 
     def load_current(self, camera_id: str) -> CalibrationResult | None:
         """The camera's current (published, accepted) result, or None when it has none.

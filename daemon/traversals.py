@@ -479,6 +479,7 @@ class TraversalTracker:
         self._learn_ns = round(min(trigger.learn_window_s, trigger.max_window_s) * NS_PER_S)
         self._margin_ns = round(window_margin_s * NS_PER_S)
         self._used_until_ns: int | None = None
+        self._not_before_ns: int | None = None  # set_not_before
         self._tick_ns: int | None = None  # now_ns of the last tick()
         self._stale = 0
         self._reset()
@@ -641,6 +642,13 @@ class TraversalTracker:
             self._used_until_ns = stamp_ns
         self._snapshot = self._make_snapshot()
 
+    def set_not_before(self, stamp_ns: int) -> None:
+        """Traversals that began before `stamp_ns` are never used again (the camera moved after them: a
+        withdrawn result); like used_until it never moves back."""
+        if self._not_before_ns is None or stamp_ns > self._not_before_ns:
+            self._not_before_ns = stamp_ns
+        self._snapshot = self._make_snapshot()
+
     def set_coverage(self, coverage: Coverage) -> None:
         """Switch to a (learned or changed) coverage. Forgets visits, traversals and learning data (they
         belong to the old coverage) but not used_until; replay the window's V2X through observe() next."""
@@ -662,15 +670,24 @@ class TraversalTracker:
     # ------------------------------------------------------------------------------------------ helpers
 
     def _count(self) -> int:
-        return max(self._per_station.values(), default=0)
+        if self._not_before_ns is None:
+            return max(self._per_station.values(), default=0)
+        first = self._not_before_ns
+        counts = Counter(t.station_id for t in self._traversals if t.enter_ns >= first)
+        return max(counts.values(), default=0)
 
     def _live_by_station(self, now_ns: int, *, new_only: bool = False) -> dict[int, list[Traversal]]:
         """Traversals within max_window_s by station; with `new_only` those ending after used_until_ns."""
         cutoff_ns = now_ns - self._max_window_ns
         used = self._used_until_ns if new_only else None
+        first = self._not_before_ns
         groups: dict[int, list[Traversal]] = {}
         for traversal in self._traversals:
-            if traversal.left_received_ns >= cutoff_ns and (used is None or traversal.leave_ns > used):
+            if (
+                traversal.left_received_ns >= cutoff_ns
+                and (used is None or traversal.leave_ns > used)
+                and (first is None or traversal.enter_ns >= first)
+            ):
                 groups.setdefault(traversal.station_id, []).append(traversal)
         return groups
 
@@ -680,6 +697,8 @@ class TraversalTracker:
         start_ns = min(t.enter_ns for t in group) - self._margin_ns
         if new_only and self._used_until_ns is not None:
             start_ns = max(start_ns, self._used_until_ns + 1)
+        if self._not_before_ns is not None:
+            start_ns = max(start_ns, self._not_before_ns)
         return JobWindow(
             start_ns=start_ns,
             end_ns=max(t.leave_ns for t in group) + self._margin_ns,

@@ -28,6 +28,12 @@ STARTED_NS = CREATED_AT_NS
 NOW_NS = CREATED_AT_NS + 5 * NS_PER_S
 EARLIER_NS = CREATED_AT_NS - 3600 * NS_PER_S  # the last verification
 REFUSAL_REASONS = ["position std 0.82 m > 0.5 m"]
+# A refusal on precision alone, as pipeline.validation words it (its std gates only).
+IMPRECISE_REASONS = [
+    "position std = 0.185 m (3 sigma 0.56 m > 0.5 m): mostly from the vehicle's body shape",
+    "rotation std = 0.201 deg (3 sigma 0.60 deg > 0.5 deg): mostly from the vehicle's body shape",
+]
+WINDOW_START_NS = WINDOW_END_NS - 600 * NS_PER_S
 
 
 def _outcome(
@@ -46,6 +52,7 @@ def _decide(
     current: CalibrationResult | None,
     state: CameraState,
     change: ChangeConfig | None = None,
+    window_start_ns: int | None = None,
     **outcome: object,
 ) -> Decision:
     return decide(
@@ -56,6 +63,7 @@ def _decide(
         window_end_ns=WINDOW_END_NS,
         started_ns=STARTED_NS,
         now_ns=NOW_NS,
+        window_start_ns=window_start_ns,
     )
 
 
@@ -329,3 +337,84 @@ def test_results_in_different_zones_replace_the_current_one(current: Calibration
     )
     decision = _decide(other_zone, current, CameraState(current_result_id="old"))
     assert decision.publish and decision.warnings and "different UTM zones" in decision.warnings[0]
+
+
+def _refused(result: CalibrationResult, reasons: list[str]) -> CalibrationResult:
+    return result.model_copy(update={"verdict": Verdict(status="refused", reasons=reasons)})
+
+
+def test_a_move_shown_by_a_fit_refused_on_its_precision_withdraws_the_current_result(
+    current: CalibrationResult,
+) -> None:
+    """The new drive-pasts agree with each other but fix the pose too loosely to publish it; still, 1 m and
+    1 deg from the current result is far beyond both results' uncertainty: the current result no longer
+    describes the camera, so it is withdrawn and nothing replaces it."""
+    state = CameraState(
+        current_result_id="old",
+        verified_at_ns=EARLIER_NS,
+        used_until_ns=WINDOW_START_NS - NS_PER_S,
+        time_offset_ns=50_000_000,
+    )
+    old = _with_std(current, 0.05, 0.05)
+    new = _refused(_with_std(_moved(current, "new", 1.0, 1.0), 0.185, 0.201), IMPRECISE_REASONS)
+
+    decision = _decide(new, old, state, window_start_ns=WINDOW_START_NS)
+
+    assert decision.withdraw and not decision.publish
+    assert decision.kind == "refused" and decision.event == "withdrawn"
+    assert decision.result is not None and decision.result.change is not None
+    change = decision.result.change
+    assert change.moved and change.previous_result_id == "old"
+    assert change.shift_m == pytest.approx(1.0, abs=1e-9) and change.shift_deg == pytest.approx(1.0, abs=1e-6)
+    assert decision.state.current_result_id is None and decision.state.verified_at_ns is None
+    # The next jobs use none of the drive-pasts before the move: not before this job's window.
+    assert decision.state.not_before_ns == WINDOW_START_NS
+    assert decision.state.time_offset_ns == 50_000_000  # a refused fit's clock is not trusted
+    assert decision.text.startswith("camera moved 1.00 m / 1.00 deg")
+    assert "old withdrawn" in decision.text
+    assert decision.text.endswith("refused: " + "; ".join(IMPRECISE_REASONS))
+
+    # Storing the refused result failed: nothing is withdrawn, the camera keeps its current result.
+    failed = storing_failed(decision, state, "disk full")
+    assert not failed.withdraw and failed.state.current_result_id == "old"
+    assert failed.state.not_before_ns is None and failed.state.verified_at_ns == EARLIER_NS
+
+
+def test_a_refused_fit_moves_nothing_unless_only_its_precision_failed_on_new_drive_pasts(
+    current: CalibrationResult,
+) -> None:
+    state = CameraState(current_result_id="old", verified_at_ns=EARLIER_NS, used_until_ns=WINDOW_START_NS)
+    old = _with_std(current, 0.05, 0.05)
+    far = _with_std(_moved(current, "new", 1.0, 1.0), 0.185, 0.201)
+    cases = {
+        # Another reason says its tracks may not be the vehicle's: its pose is no evidence of a move.
+        "other reason": (_refused(far, [*IMPRECISE_REASONS, "delta_p mean = 0.912 m > 0.5 m"]), {}),
+        "no precision reason": (_refused(far, REFUSAL_REASONS), {}),
+        # Only drive-pasts the current result already judged: nothing new to judge.
+        "old drive-pasts": (_refused(far, IMPRECISE_REASONS), {"newest_track_end_ns": WINDOW_START_NS}),
+        "no pose": (_refused(far, IMPRECISE_REASONS).model_copy(update={"R": None, "t": None}), {}),
+    }
+    for name, (new, outcome) in cases.items():
+        decision = _decide(new, old, state, window_start_ns=WINDOW_START_NS, **outcome)
+        assert not decision.withdraw and decision.event == "refused", name
+        assert decision.state.current_result_id == "old" and decision.state.not_before_ns is None, name
+        assert decision.result is not None and decision.result.change is None, name
+    assert _decide(_refused(far, IMPRECISE_REASONS), None, CameraState()).event == "refused"
+
+
+def test_a_fit_refused_on_its_precision_within_the_limits_keeps_the_current_result(
+    current: CalibrationResult,
+) -> None:
+    """0.5 m from the current result, but the refused fit's own std (0.3 m) widens the limit to 3 sigma of
+    both: no provable move. The comparison is kept with the refused result."""
+    state = CameraState(current_result_id="old", verified_at_ns=EARLIER_NS, used_until_ns=WINDOW_START_NS)
+    old = _with_std(current, 0.05, 0.05)
+    near = _refused(_with_std(_moved(current, "new", 0.5, 0.2), 0.3, 0.3), IMPRECISE_REASONS)
+
+    decision = _decide(near, old, state, window_start_ns=WINDOW_START_NS)
+
+    assert not decision.withdraw and decision.event == "refused"
+    assert decision.state.current_result_id == "old" and decision.state.verified_at_ns == EARLIER_NS
+    assert decision.result is not None and decision.result.change is not None
+    assert not decision.result.change.moved and decision.result.change.shift_m == pytest.approx(0.5, abs=1e-9)
+    assert decision.text == "refused: " + "; ".join(IMPRECISE_REASONS)

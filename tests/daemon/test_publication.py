@@ -225,13 +225,22 @@ def _play(
 
 
 def _subscribe_calibrations(
-    client: zenoh.Session, config: DaemonConfig, received: list[tuple[str, bytes]]
+    client: zenoh.Session,
+    config: DaemonConfig,
+    received: list[tuple[str, bytes]],
+    deleted: list[str] | None = None,
 ) -> zenoh.Subscriber[Any]:
-    """Subscribe to every camera's `.../calibration`; returns once the daemon knows the subscription."""
-    subscriber = client.declare_subscriber(
-        calibration_key(config.rsu_id, "*"),
-        lambda sample: received.append((str(sample.key_expr), sample.payload.to_bytes())),
-    )
+    """Subscribe to every camera's `.../calibration`: puts to `received`, deletes (a withdrawn result) to
+    `deleted`; returns once the daemon knows the subscription."""
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            if deleted is not None:
+                deleted.append(str(sample.key_expr))
+        else:
+            received.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    subscriber = client.declare_subscriber(calibration_key(config.rsu_id, "*"), on_sample)
     # Declarations and queries travel in order on the one link: once a query is answered, the daemon has
     # the subscription and routes its next put to us.
     wait_until(lambda: _status(client, config, config.cameras[0].camera_id) is not None, timeout_s=10)
@@ -252,6 +261,7 @@ class Site:
     state_dir: Path
     spare_ids: list[str]  # cameras no test has used yet
     received: list[tuple[str, bytes]] = field(default_factory=list)  # (key, payload) as put on the bus
+    deleted: list[str] = field(default_factory=list)  # keys deleted on the bus (withdrawn results)
     subscriber: zenoh.Subscriber[Any] | None = None
 
 
@@ -277,7 +287,7 @@ def _open_site(
         daemon.start()
         client = zenoh.open(client_config(config.zenoh.listen))
         site = Site(sim, config, daemon, client, state_dir, [spare.camera_id for spare in spares])
-        site.subscriber = _subscribe_calibrations(client, config, site.received)
+        site.subscriber = _subscribe_calibrations(client, config, site.received, site.deleted)
         yield site
     finally:
         if client is not None:
@@ -435,6 +445,41 @@ def test_the_estimated_time_offset_is_shown_and_becomes_the_next_jobs_prior(came
     status = camera.status()
     assert (status.time_offset_ns, status.time_offset_std_ns) == (estimated_ns, 1.5e6)
     assert prior_ns() == estimated_ns
+
+
+def test_a_move_shown_by_a_refused_fit_withdraws_the_result_everywhere(camera: Camera) -> None:
+    """The re-verification's fit is refused on its precision alone, yet 1 m from the current result: the
+    camera moved. The result is withdrawn: deleted on the bus, no longer answered, current.json gone, the
+    status no longer calibrated (daemon.publication, rules in test_decide.py)."""
+    first = camera.truth("first")
+    camera.finish(first)
+    camera.published(1)
+    imprecise = [
+        "position std = 0.185 m (3 sigma 0.56 m > 0.5 m): mostly from the vehicle's body shape",
+        "rotation std = 0.201 deg (3 sigma 0.60 deg > 0.5 deg): mostly from the vehicle's body shape",
+    ]
+    refused = Verdict(status="refused", reasons=imprecise)
+    moved = _displaced(first, "moved", camera.now_ns(), shift_east_m=1.0, verdict=refused)
+
+    spec = camera.finish(moved)
+
+    key = calibration_key(camera.site.config.rsu_id, camera.camera_id)
+    wait_until(lambda: key in camera.site.deleted, timeout_s=10)
+    status = camera.status()
+    assert status.state != "calibrated" and status.current_result_id is None and status.verified_at_ns is None
+    assert status.last_job is not None and status.last_job.verdict is not None
+    assert status.last_job.verdict.reasons == imprecise
+    replies = _calibration(camera.site.client, camera.site.config, camera.camera_id)
+    assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION_YET in replies.errors[0]
+    assert camera.current_file() is None
+    history = camera.history()
+    assert [r.result_id for r in history] == ["first", "moved"]
+    assert history[1].change is not None and history[1].change.moved
+    assert len(camera.published(1)) == 1  # the refused pose itself is never published
+    # The camera's next jobs start where the refused one did: no drive-past of the old pose is pooled.
+    state_file = camera.site.state_dir / "cameras" / camera.camera_id / "camera_state.json"
+    state = json.loads(state_file.read_text())
+    assert state["not_before_ns"] == spec.window_start_ns and state["current_result_id"] is None
 
 
 def test_agreeing_result_refreshes_verification_and_publishes_nothing(camera: Camera) -> None:

@@ -503,6 +503,38 @@ def test_a_reverification_window_never_reaches_into_the_last_one() -> None:
     assert window.start_ns == first.end_ns + 1
 
 
+def test_after_a_withdrawal_no_drive_past_from_before_the_move_is_pooled() -> None:
+    """A re-verification showed the camera moved but was refused (daemon.publication: the current result is
+    withdrawn): the camera is uncalibrated again, so refused drive-pasts count again in the next job, but
+    none that began before the re-verification's window (the old pose's)."""
+    tracker = circle_tracker(min_traversals=2, quiet_period_s=10.0)
+    for start_s in (0, 100):
+        feed(tracker, drive_past(T0 + start_s * S))
+    first = tracker.due(T0 + 200 * S)
+    assert first is not None
+    tracker.mark_used(first)
+    for start_s in (200, 300):
+        feed(tracker, drive_past(T0 + start_s * S))
+    reverification = tracker.due(T0 + 400 * S, new_only=True)
+    assert reverification is not None
+    tracker.mark_used(reverification)
+
+    tracker.set_not_before(reverification.start_ns)
+
+    assert tracker.snapshot().traversals == 2  # the two after the move, of four
+    assert tracker.due(T0 + 400 * S) is None  # nothing new since the refused job
+    forced = tracker.force_window(T0 + 400 * S)
+    assert forced is not None and [t.enter_ns for t in forced.traversals] == [T0 + 205 * S, T0 + 305 * S]
+    feed(tracker, drive_past(T0 + 400 * S))
+    window = tracker.due(T0 + 500 * S)
+    assert window is not None
+    assert [t.enter_ns for t in window.traversals] == [T0 + 205 * S, T0 + 305 * S, T0 + 405 * S]
+    assert window.start_ns == reverification.start_ns
+    # Like used_until it never moves back (a restart restores the persisted stamp).
+    tracker.set_not_before(T0)
+    assert tracker.snapshot().traversals == 3
+
+
 def test_short_visits_are_discarded_but_restart_the_quiet_period() -> None:
     tracker = circle_tracker(min_traversals=2, min_dwell_s=2.0, quiet_period_s=30.0)
     feed(tracker, drive_past(T0))
