@@ -743,6 +743,10 @@ class TraversalTracker:
         station = self._stations[best[2]]
         start_ns = self._data_start_ns(station, now_ns)
         assert start_ns is not None  # the station has a segment in the window
+        if self._not_before_ns is not None:  # never data from before a move (set_not_before)
+            if best[1] <= self._not_before_ns:
+                return None
+            start_ns = max(start_ns, self._not_before_ns)
         return JobWindow(start_ns=start_ns, end_ns=best[1], station_id=best[2], traversals=())
 
     def _window_start_ns(self) -> int | None:

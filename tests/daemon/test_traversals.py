@@ -708,6 +708,12 @@ def test_learning_mode_is_due_after_learn_window_of_data_and_silence(scenes: dic
     replay(patient, samples, until_ns=last_ns + 200 * S, on_tick=lambda now: None)
     assert patient.due(last_ns + 200 * S) is None
     assert patient.force_window(last_ns + 200 * S) == window
+    # After a withdrawal (the camera moved) a learning window starts where the data after the move start.
+    middle_ns = (first_ns + last_ns) // 2
+    patient.set_not_before(middle_ns)
+    assert patient.force_window(last_ns + 200 * S) == JobWindow(middle_ns, last_ns, STATION, ())
+    patient.set_not_before(last_ns)
+    assert patient.force_window(last_ns + 200 * S) is None  # nothing heard since
 
 
 def test_learning_mode_retriggers_on_new_data_and_forgets_old_data() -> None:
