@@ -158,9 +158,14 @@ def test_two_cameras_calibrate_over_the_bus_and_survive_a_restart(
         daemon.stop()
 
 
+@pytest.mark.parametrize("withdrawn", [False, True], ids=["plain", "after-a-withdrawal"])
 def test_restart_mid_collection_keeps_traversals(
-    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path, client_for: object
+    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path, client_for: object, withdrawn: bool
 ) -> None:
+    """The restarted daemon counts the drive-pasts again from its recordings. `withdrawn`: a result was
+    withdrawn before the stop (daemon.publication: the camera moved after the first drive-past); the
+    restart neither finds it current again (its current.json is gone while the state still names it, as
+    after a crash between the two writes) nor counts the drive-past from before the move."""
     config = _config(sim, tmp_path / "state")
     camera_id = config.cameras[0].camera_id
     ends = _traversal_ends(sim, camera_id)
@@ -178,48 +183,19 @@ def test_restart_mid_collection_keeps_traversals(
         assert status is not None and status.state == "collecting"
     finally:
         daemon.stop()
+    if withdrawn:
+        store = StateStore(config.storage.state_dir)
+        state = (store.load_camera_state(camera_id) or CameraState()).model_copy(
+            update={"current_result_id": "withdrawn", "not_before_ns": ends[0] + 1}
+        )
+        store.save_camera_state(camera_id, state)
 
     daemon = Daemon(config, clock=clock)
     try:
         daemon.start()
         client = client_for(config)  # type: ignore[operator]
         status = _status(client, config, camera_id)
-        assert status is not None and status.traversals == 2, status
-    finally:
-        daemon.stop()
-
-
-def test_a_restart_keeps_a_withdrawal(
-    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path, client_for: object
-) -> None:
-    """A result withdrawn before the stop (daemon.publication: the camera moved): the restarted daemon
-    neither finds it current again (its current.json is gone while the state still named it, as after a
-    crash between the two writes) nor counts the drive-pasts before the move."""
-    config = _config(sim, tmp_path / "state")
-    camera_id = config.cameras[0].camera_id
-    ends = _traversal_ends(sim, camera_id)
-    cut_ns = ends[1] + 10_000_000_000
-    clock = ScaledClock(messages[0].stamp_ns - 1_000_000_000, RATE)
-    daemon = Daemon(config, clock=clock)
-    try:
-        daemon.start()
-        client = client_for(config)  # type: ignore[operator]
-        _play(client, messages, clock, until_ns=cut_ns)
-        wait_until(lambda: (s := _status(client, config, camera_id)) is not None and s.traversals == 2, 20)
-    finally:
-        daemon.stop()
-    store = StateStore(config.storage.state_dir)
-    state = store.load_camera_state(camera_id) or CameraState()
-    store.save_camera_state(
-        camera_id, state.model_copy(update={"current_result_id": "withdrawn", "not_before_ns": ends[0] + 1})
-    )
-
-    daemon = Daemon(config, clock=clock)
-    try:
-        daemon.start()
-        client = client_for(config)  # type: ignore[operator]
-        status = _status(client, config, camera_id)
-        assert status is not None and status.traversals == 1, status  # the second drive-past only
+        assert status is not None and status.traversals == (1 if withdrawn else 2), status
         assert status.current_result_id is None and status.state == "collecting"
     finally:
         daemon.stop()
