@@ -473,6 +473,11 @@ class Daemon:
             self._emit_all(runtime.tracker.tick(now_ns))
             with self._lock:
                 busy, calibrated = runtime.running_job is not None, runtime.current is not None
+                not_before_ns = runtime.state.not_before_ns
+            if not_before_ns is not None and not_before_ns != runtime.tracker.not_before_ns:
+                # Set with the withdrawal, under the lock that cleared `current`: no window of this tick
+                # reaches back before the move.
+                runtime.tracker.set_not_before(not_before_ns)
             if not busy:
                 # A calibrated camera is re-verified on new drive-pasts alone (daemon.traversals).
                 window = runtime.tracker.due(now_ns, new_only=calibrated)
@@ -649,13 +654,8 @@ class Daemon:
                 runtime.set_current(result, payload)
             if decision.withdraw:
                 runtime.current = runtime.current_json = None
-        if decision.withdraw:
-            not_before_ns = decision.state.not_before_ns
-            if not_before_ns is not None:
-                tracker = runtime.tracker
-                self._inbox.put(lambda: tracker.set_not_before(not_before_ns))
-            if self._bus is not None:
-                self._bus.withdraw_calibration(camera_id)
+        if decision.withdraw and self._bus is not None:
+            self._bus.withdraw_calibration(camera_id)  # the tracker learns not_before_ns on its next tick
         if result is not None:
             # The recorder belongs to the ingest thread: the result channels are written there.
             recorded = result

@@ -660,6 +660,10 @@ class TraversalTracker:
         return self._used_until_ns
 
     @property
+    def not_before_ns(self) -> int | None:
+        return self._not_before_ns
+
+    @property
     def coverage(self) -> Coverage | None:
         return self._coverage
 
