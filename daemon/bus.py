@@ -45,7 +45,7 @@ JSON = zenoh.Encoding.APPLICATION_JSON
 FRAME_TRANSFORM_ENCODING = zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(FRAME_TRANSFORM.name)
 # The text of the error reply to `.../calibration` before a camera has a validated result: fleet readers
 # (`rsucal status`) recognise it as "not calibrated yet" rather than a fault.
-NO_CALIBRATION_YET = "no validated calibration yet"
+NO_CALIBRATION = "no validated calibration: none accepted yet, or withdrawn (see the camera's status)"
 # close() joins the serving threads within this budget in total (they end as soon as their queryable is
 # undeclared, unless a handler is stuck; those threads are daemons and are left behind with a warning).
 JOIN_BUDGET_S = 0.3
@@ -215,7 +215,7 @@ def query_replies(session: zenoh.Session, key: str, timeout_s: float) -> QueryRe
 
 
 def query(session: zenoh.Session, key: str, timeout_s: float) -> list[tuple[str, bytes]]:
-    """(key, payload) of the ok replies; error replies (e.g. NO_CALIBRATION_YET) are logged at debug."""
+    """(key, payload) of the ok replies; error replies (e.g. NO_CALIBRATION) are logged at debug."""
     replies = query_replies(session, key, timeout_s)
     for text in replies.errors:
         log.debug("get %s: error reply: %s", key, text)
@@ -487,7 +487,7 @@ class Bus:
     def _answer_calibration(self, query: zenoh.Query) -> None:
         for camera_id, key in self._cameras_asked(query, calibration_key):
             produce = functools.partial(self._handlers.calibration, camera_id)
-            self._reply_each(query, key, produce, if_none=NO_CALIBRATION_YET)
+            self._reply_each(query, key, produce, if_none=NO_CALIBRATION)
 
     def _answer_trigger(self, query: zenoh.Query) -> None:
         # A trigger starts a job: only an exact key does, never a fleet-wide `rsu/**` read.

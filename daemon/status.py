@@ -24,7 +24,7 @@ import zenoh
 from pydantic import BaseModel, ValidationError
 
 from daemon.bus import (
-    NO_CALIBRATION_YET,
+    NO_CALIBRATION,
     BusError,
     client_config,
     connect_endpoints,
@@ -155,8 +155,8 @@ def fetch_status(
 
     problems: list[str] = []
     problems.extend(statuses_replies.errors)
-    # "no validated calibration yet" is an answer (the status row says so), not a problem.
-    problems.extend(e for e in results_replies.errors if not e.endswith(NO_CALIBRATION_YET))
+    # "no validated calibration" is an answer (the status row says so), not a problem.
+    problems.extend(e for e in results_replies.errors if not e.endswith(NO_CALIBRATION))
     problems.extend(health_replies.errors)
     statuses = _decode_all(CalibrationStatus, statuses_replies.ok, problems)
     for key, status in statuses:

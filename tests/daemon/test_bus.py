@@ -17,7 +17,7 @@ import zenoh
 from helpers import free_port, wait_until
 
 from daemon.bus import (
-    NO_CALIBRATION_YET,
+    NO_CALIBRATION,
     Bus,
     BusError,
     Handlers,
@@ -173,7 +173,7 @@ def test_calibration_without_a_result_is_an_error_reply_given_at_once(running: R
     # Finalised as soon as answered: the getter does not sit out its 10 s timeout.
     assert time.monotonic() - started < 5
     assert replies.ok == []
-    assert replies.errors == [f"rsu/r1/camera/c2/calibration: {NO_CALIBRATION_YET}"]
+    assert replies.errors == [f"rsu/r1/camera/c2/calibration: {NO_CALIBRATION}"]
     assert query(running.client, "rsu/r1/camera/c2/calibration", timeout_s=10) == []
 
 
@@ -191,7 +191,7 @@ def test_fleet_wildcard_queries_read_every_camera_and_never_trigger(running: Run
         "rsu/r1/camera/c2/calibration/status",
         "rsu/r1/health",
     ]
-    assert f"rsu/r1/camera/c1/calibration: {NO_CALIBRATION_YET}" in everything.errors
+    assert f"rsu/r1/camera/c1/calibration: {NO_CALIBRATION}" in everything.errors
     not_triggered = sorted(e for e in everything.errors if "trigger" in e)
     assert len(not_triggered) == 2 and all("needs the exact key" in e for e in not_triggered)
     assert query(running.client, "rsu/r1/camera/*/calibration/trigger", timeout_s=5) == []

@@ -32,7 +32,7 @@ from helpers import free_port, wait_until
 from mcap.reader import make_reader
 
 from daemon.bus import (
-    NO_CALIBRATION_YET,
+    NO_CALIBRATION,
     QueryReplies,
     client_config,
     query,
@@ -414,7 +414,7 @@ def test_first_accepted_result_is_published_stored_and_answered(camera: Camera) 
     other = _status(camera.site.client, camera.site.config, other_id)
     assert other is not None and other.state == "idle" and other.current_result_id is None
     replies = _calibration(camera.site.client, camera.site.config, other_id)
-    assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION_YET in replies.errors[0]
+    assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION in replies.errors[0]
 
 
 def test_the_estimated_time_offset_is_shown_and_becomes_the_next_jobs_prior(camera: Camera) -> None:
@@ -470,7 +470,7 @@ def test_a_move_shown_by_a_refused_fit_withdraws_the_result_everywhere(camera: C
     assert status.last_job is not None and status.last_job.verdict is not None
     assert status.last_job.verdict.reasons == imprecise
     replies = _calibration(camera.site.client, camera.site.config, camera.camera_id)
-    assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION_YET in replies.errors[0]
+    assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION in replies.errors[0]
     assert camera.current_file() is None
     history = camera.history()
     assert [r.result_id for r in history] == ["first", "moved"]
@@ -614,7 +614,7 @@ def test_failed_job_shows_its_error_and_publishes_nothing(camera: Camera) -> Non
     assert status.state == "refused" and status.current_result_id is None and status.verified_at_ns is None
     assert status.counters["jobs.failed"] == 1
     replies = _calibration(camera.site.client, camera.site.config, camera.camera_id)
-    assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION_YET in replies.errors[0]
+    assert replies.ok == [] and len(replies.errors) == 1 and NO_CALIBRATION in replies.errors[0]
     assert camera.current_file() is None and camera.history() == []
     # A failure blocks nothing: the next accepted result is the first and only publication.
     camera.finish(camera.truth("first"))

@@ -31,7 +31,7 @@ import zenoh
 from helpers import free_port, wait_until
 
 from daemon import cli
-from daemon.bus import NO_CALIBRATION_YET, query_replies
+from daemon.bus import NO_CALIBRATION, query_replies
 from daemon.demo import demo_config
 from daemon.ingest import (
     DETECTIONS_ACCEPTED,
@@ -278,7 +278,7 @@ def test_operator_reads_the_calibration_and_status(
     assert decode_json(CalibrationResult, payload) == site.result
     # The second camera has no result: the daemon says so (an error reply, not silence).
     other = query_replies(operator, calibration_key(site.rsu, site.config.cameras[1].camera_id), ANSWERED_S)
-    assert other.ok == [] and len(other.errors) == 1 and NO_CALIBRATION_YET in other.errors[0]
+    assert other.ok == [] and len(other.errors) == 1 and NO_CALIBRATION in other.errors[0]
 
     # rsucal status's reader, with the operator's copy of secure-client.json5 and its endpoints.
     operator_file = site.client_file("rsucal-operator")
