@@ -361,25 +361,24 @@ class Bus:
     def withdraw_calibration(self, camera_id: str) -> None:
         """Delete `.../calibration` and `.../calibration/transform`: the camera moved and its published result
         no longer describes it (subscribers get a DELETE sample; the queryable answers nothing)."""
-        self._open_for_camera(camera_id)
-        session = self._session
-        assert session is not None  # checked open above
+        session = self._open_for_camera(camera_id)
         for key in (calibration_key(self._rsu_id, camera_id), transform_key(self._rsu_id, camera_id)):
             try:
                 session.delete(key)
             except zenoh.ZError as err:
                 raise BusError(f"delete {key}: {zenoh_message(err)}") from err
 
-    def _open_for_camera(self, camera_id: str) -> None:
+    def _open_for_camera(self, camera_id: str) -> zenoh.Session:
+        """The open session, for a configured camera (KeyError, BusError otherwise)."""
         if camera_id not in self._camera_ids:
             raise KeyError(f"camera_id {camera_id!r} is not configured")
-        if self._session is None or self._state != "open":
+        session = self._session
+        if session is None or self._state != "open":
             raise BusError(f"bus of rsu {self._rsu_id} is not open")
+        return session
 
     def _put_for_camera(self, camera_id: str, key: str, payload: bytes, encoding: zenoh.Encoding) -> None:
-        self._open_for_camera(camera_id)
-        session = self._session
-        assert session is not None  # checked open above
+        session = self._open_for_camera(camera_id)
         try:
             session.put(key, payload, encoding=encoding)
         except zenoh.ZError as err:
