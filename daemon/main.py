@@ -297,6 +297,15 @@ class Daemon:
                 log.warning("camera %s: %s", camera_id, lens)
             current = self.store.load_current(camera_id)
             state = self.store.load_camera_state(camera_id) or CameraState()
+            if current is not None and current.result_id == state.withdrawn_result_id:
+                # Withdrawn, and the state saved, but a crash came before current.json was removed.
+                log.warning(
+                    "camera %s: result %s was withdrawn; removing its current.json",
+                    camera_id,
+                    current.result_id,
+                )
+                self._remove_current(camera_id)
+                current = None
             if current is not None and state.current_result_id != current.result_id:
                 # camera_state.json lost or older than current.json (a crash between the two writes, or a
                 # state dir seeded by hand): the stored result is what the queryable answers, so say so.
@@ -307,7 +316,7 @@ class Daemon:
                     }
                 )
             if current is None and state.current_result_id is not None:
-                # Withdrawn (a crash after current.json was removed, before the state was saved), or lost.
+                # current.json lost (removed or damaged beyond what the history can replace).
                 state = state.model_copy(update={"current_result_id": None, "verified_at_ns": None})
             coverage = coverage_from_config(camera, self._frame) if self._frame is not None else None
             if coverage is None and current is not None:
@@ -578,6 +587,12 @@ class Daemon:
             report_dir=str(self.store.history_dir(camera_id)),
         )
 
+    def _remove_current(self, camera_id: str) -> None:
+        try:
+            self.store.withdraw_current(camera_id)
+        except OSError as err:  # withdrawn in memory and on the bus; the state makes the restart remove it
+            log.error("camera %s: removing current.json failed: %s", camera_id, err)
+
     # ------------------------------------------------------------------------------------------ supervisor
 
     def _supervise_loop(self) -> None:
@@ -623,16 +638,14 @@ class Daemon:
                 reason = f"result {decision.result.result_id} could not be stored: {err}"
                 log.error("camera %s: job %s: %s", camera_id, spec.job_id, reason)
                 decision = storing_failed(decision, state, reason)
-        if decision.withdraw:
-            try:
-                # Before the state: a crash in between leaves no current.json, never a withdrawn one.
-                self.store.withdraw_current(camera_id)
-            except OSError as err:  # still withdrawn in memory and on the bus; the restart finds it again
-                log.error("camera %s: removing current.json failed: %s", camera_id, err)
         try:
             self.store.save_camera_state(camera_id, decision.state)
         except OSError as err:  # the state in memory still answers queries; the next save may succeed
             log.error("camera %s: saving the camera state failed: %s", camera_id, err)
+        if decision.withdraw:
+            # After the state, which names the withdrawn result and the move's not_before_ns: a crash in
+            # between leaves a current.json that the restart recognises as withdrawn (_recover).
+            self._remove_current(camera_id)
         storage = self.config.storage
         try:
             # After the state names the new current result: pruning never deletes the current one.

@@ -122,11 +122,13 @@ def decide(
             text = f"re-verified: agrees with {current.result_id} ({describe_change(info)})"
             verified_at_ns = now_ns
     current_id, not_before_ns = state.current_result_id, state.not_before_ns
+    withdrawn_id = state.withdrawn_result_id
     if publish:
         assert result is not None
         verified_at_ns, current_id = now_ns, result.result_id
     if withdraw:
-        verified_at_ns, current_id = None, None
+        assert current is not None
+        verified_at_ns, current_id, withdrawn_id = None, None, current.result_id
         if window_start_ns is not None:
             not_before_ns = max(window_start_ns, not_before_ns or 0)
     time_offset_ns, time_offset_std_ns = state.time_offset_ns, state.time_offset_std_ns
@@ -150,6 +152,7 @@ def decide(
             "time_offset_ns": time_offset_ns,
             "time_offset_std_ns": time_offset_std_ns,
             "not_before_ns": not_before_ns,
+            "withdrawn_result_id": withdrawn_id,
         }
     )
     event: EventKind = "published" if publish else ("verified" if kind == "accepted" else kind)
@@ -190,6 +193,7 @@ def storing_failed(decision: Decision, previous: CameraState, reason: str) -> De
             "time_offset_ns": previous.time_offset_ns,
             "time_offset_std_ns": previous.time_offset_std_ns,
             "not_before_ns": previous.not_before_ns,
+            "withdrawn_result_id": previous.withdrawn_result_id,
         }
     )
     return replace(

@@ -58,6 +58,11 @@ class CameraState(StrictModel):
     not_before_ns: StampNs | None = Field(
         default=None, description="no traversal that began before this stamp is used (the camera moved)"
     )
+    withdrawn_result_id: str | None = Field(
+        default=None,
+        description="the result last withdrawn (the camera moved); a current.json still naming it, as a "
+        "crash between saving this state and removing that file leaves it, is never current again",
+    )
 
 
 class StateStore:

@@ -165,7 +165,7 @@ def test_restart_mid_collection_keeps_traversals(
     """The restarted daemon counts the drive-pasts again from its recordings. `withdrawn`: a result was
     withdrawn before the stop (daemon.publication: the camera moved after the first drive-past); the
     restart neither finds it current again (its current.json is gone while the state still names it, as
-    after a crash between the two writes) nor counts the drive-past from before the move."""
+    when the file is lost) nor counts the drive-past from before the move."""
     config = _config(sim, tmp_path / "state")
     camera_id = config.cameras[0].camera_id
     ends = _traversal_ends(sim, camera_id)

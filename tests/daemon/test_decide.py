@@ -367,6 +367,7 @@ def test_a_move_shown_by_a_fit_refused_on_its_precision_withdraws_the_current_re
     assert change.moved and change.previous_result_id == "old"
     assert change.shift_m == pytest.approx(1.0, abs=1e-9) and change.shift_deg == pytest.approx(1.0, abs=1e-6)
     assert decision.state.current_result_id is None and decision.state.verified_at_ns is None
+    assert decision.state.withdrawn_result_id == "old"  # a restart never takes its current.json again
     # The next jobs use none of the drive-pasts before the move: not before this job's window.
     assert decision.state.not_before_ns == WINDOW_START_NS
     assert decision.state.time_offset_ns == 50_000_000  # a refused fit's clock is not trusted
@@ -378,6 +379,7 @@ def test_a_move_shown_by_a_fit_refused_on_its_precision_withdraws_the_current_re
     failed = storing_failed(decision, state, "disk full")
     assert not failed.withdraw and failed.state.current_result_id == "old"
     assert failed.state.not_before_ns is None and failed.state.verified_at_ns == EARLIER_NS
+    assert failed.state.withdrawn_result_id is None
 
 
 def test_a_refused_fit_moves_nothing_unless_only_its_precision_failed_on_new_drive_pasts(
@@ -398,6 +400,7 @@ def test_a_refused_fit_moves_nothing_unless_only_its_precision_failed_on_new_dri
         decision = _decide(new, old, state, window_start_ns=WINDOW_START_NS, **outcome)
         assert not decision.withdraw and decision.event == "refused", name
         assert decision.state.current_result_id == "old" and decision.state.not_before_ns is None, name
+        assert decision.state.withdrawn_result_id is None, name
         assert decision.result is not None and decision.result.change is None, name
     assert _decide(_refused(far, IMPRECISE_REASONS), None, CameraState()).event == "refused"
 

@@ -53,6 +53,7 @@ from daemon.keys import (
     v2x_key,
 )
 from daemon.main import Daemon, DaemonEvent
+from daemon.state import CameraState, StateStore
 from daemon.traversals import JobWindow
 from pipeline.camera import camera_centre, quaternion_wxyz_from_rotation
 from pipeline.frames import UtmFrame
@@ -480,6 +481,33 @@ def test_a_move_shown_by_a_refused_fit_withdraws_the_result_everywhere(camera: C
     state_file = camera.site.state_dir / "cameras" / camera.camera_id / "camera_state.json"
     state = json.loads(state_file.read_text())
     assert state["not_before_ns"] == spec.window_start_ns and state["current_result_id"] is None
+    assert state["withdrawn_result_id"] == "first"
+
+
+def test_a_withdrawal_cut_short_before_current_json_was_removed_stays_withdrawn(
+    sim: SimulationResult, messages: list[BusMessage], tmp_path: Path
+) -> None:
+    """The daemon saves a withdrawal's state before it removes current.json. A crash in between leaves
+    both: the restarted daemon removes current.json, answers no calibration and keeps the move's floor."""
+    state_dir = tmp_path / "state"
+    camera_id = sim.cameras[0].camera_id
+    start_ns = messages[0].stamp_ns
+    withdrawn = result_from_ground_truth(sim.ground_truth[camera_id], sim.rsu_id).model_copy(
+        update={"result_id": "first", "created_at_ns": start_ns}
+    )
+    store = StateStore(state_dir)
+    store.save_result(withdrawn, current=True)
+    floor_ns = start_ns + 60 * NS_PER_S
+    store.save_camera_state(camera_id, CameraState(withdrawn_result_id="first", not_before_ns=floor_ns))
+
+    with _open_site(sim, start_ns, state_dir) as site:
+        camera = Camera(site, camera_id, camera_id)
+        status = camera.status()
+        assert status.current_result_id is None and status.state != "calibrated", status
+        assert camera.answered() == []
+        assert camera.current_file() is None
+        assert [r.result_id for r in camera.history()] == ["first"]
+        assert site.daemon._cameras[camera_id].tracker.not_before_ns == floor_ns
 
 
 def test_agreeing_result_refreshes_verification_and_publishes_nothing(camera: Camera) -> None:
