@@ -49,9 +49,12 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from bench.common import inputs_for, limit_threads, tree_state
+
+if TYPE_CHECKING:
+    from sim.presets import ScenarioConfig
 
 FALSE_ACCEPT_POSITION_M = 0.5
 FALSE_ACCEPT_ROTATION_DEG = 0.5
@@ -68,6 +71,8 @@ PAPER: dict[str, str] = {
 }
 
 Run = dict[str, Any]
+# (preset or a scene of its own, seed, ideal world, readout s, latency s): one run_seed call
+Task = tuple["str | ScenarioConfig", int, bool, float | None, float | None]
 
 
 # ------------------------------------------------------------------------------------------------ targets
@@ -409,8 +414,9 @@ def coverage_line(runs: Sequence[Run], sigmas: float = 3.0) -> str:
     )
 
 
-def run_seed(task: tuple[str, int, bool, float | None, float | None]) -> list[Run]:
-    """simulate(preset, seed), calibrate() every camera, evaluate: one record per camera."""
+def run_seed(task: Task) -> list[Run]:
+    """simulate(preset, seed), calibrate() every camera, evaluate: one record per camera. The preset may
+    be a ScenarioConfig of its own (bench.unseen's drawn scenes)."""
     import numpy as np
 
     from pipeline.calibrate import PipelineParams, calibrate
@@ -418,7 +424,8 @@ def run_seed(task: tuple[str, int, bool, float | None, float | None]) -> list[Ru
     from sim.simulate import simulate
 
     preset, seed, ideal, readout_s, latency_s = task
-    base: Run = {"preset": preset, "seed": seed, "ideal": ideal}
+    name = preset if isinstance(preset, str) else preset.name
+    base: Run = {"preset": name, "seed": seed, "ideal": ideal}
     try:
         started = time.perf_counter()
         sim = simulate(preset, seed, ideal=ideal, readout_s=readout_s, latency_s=latency_s)
@@ -688,11 +695,11 @@ def run_problems(runs: Sequence[Run]) -> list[tuple[Run, str]]:
 # --------------------------------------------------------------------------------------------------- main
 
 
-def _task_weight(preset: str) -> float:
+def _task_weight(preset: str | ScenarioConfig) -> float:
     """Rough cost of one (preset, seed), to start the slow ones first."""
     from sim.simulate import PRESETS
 
-    config = PRESETS[preset]
+    config = PRESETS[preset] if isinstance(preset, str) else preset
     return len(config.cameras) * (config.traffic.count + 50) * (config.duration_s or 300.0)
 
 
@@ -704,10 +711,12 @@ def _run_all(
     readout_s: float | None = None,
     latency_s: float | None = None,
 ) -> list[Run]:
-    tasks = sorted(
-        ((p, s, ideal, readout_s, latency_s) for p in names for s in seeds),
-        key=lambda t: -_task_weight(t[0]),
-    )
+    return run_tasks([(p, s, ideal, readout_s, latency_s) for p in names for s in seeds], jobs)
+
+
+def run_tasks(tasks: Sequence[Task], jobs: int) -> list[Run]:
+    """run_seed over `tasks` in `jobs` spawned worker processes, the costly ones first; progress on stderr."""
+    tasks = sorted(tasks, key=lambda t: -_task_weight(t[0]))
     runs: list[Run] = []
     started = time.perf_counter()
 
