@@ -492,7 +492,7 @@ def _calibrate(
 
     say("validation", 0.92)
     choice = choose(candidates, scene)
-    report.extend([choice.report] if choice.report else [])
+    report.extend(choice.reports)
     final_ground = ground_under(scene.members(choice.chosen.track_ids), inputs.vehicle)
 
     say("final fit", 0.94)

@@ -6,6 +6,9 @@ the candidate's pose, reproduces its boxes (scale-free whole-box error). Then:
 
 - regroup: when grouping found no group, single-track poses refined on their own boxes that agree are grouped;
 - merge: candidates whose refined poses agree are one camera seen through one vehicle: refined on the union;
+- set aside: a candidate whose pose cannot reproduce another candidate's boxes, while that one's pose
+  reproduces its boxes, describes less of the data (short or degenerate tracks of the vehicle fitted to a
+  wrong pose fit their own few boxes closely, yet a right pose explains them as well);
 - rank: by box error (groups seen on >= 2 traversals first); a second candidate that fits about as well with
   a clearly different pose makes the result ambiguous (the caller refuses);
 - extend: tracks the chosen pose explains as the calibration vehicle are added and the union refined again.
@@ -96,7 +99,7 @@ class Choice:
     chosen: Candidate
     ambiguity: str
     candidates: tuple[Candidate, ...]
-    report: StageReport | None  # the extension's, None when no track was added
+    reports: tuple[StageReport, ...]  # "set aside" when a candidate was, "extension" when tracks were added
 
 
 # --- scores ----------------------------------------------------------------------------------------------
@@ -393,6 +396,56 @@ def rank(candidates: Sequence[Candidate], params: SelectionParams) -> tuple[Cand
     return best, ""
 
 
+def explain_limit(candidate: Candidate) -> float:
+    """The median box misfit up to which the candidate's pose explains a track as the calibration vehicle:
+    2.5 x its own box error, at least 10 % of the box height."""
+    return max(0.10, 2.5 * candidate.box_error_rel)
+
+
+def median_misfit(pose_of: Candidate, members: Sequence[MatchedTrack], scene: Scene) -> float:
+    """Median box misfit of `members` under `pose_of`'s pose; inf with fewer than 5 boxes to judge by."""
+    R, t = pose_of.whole_box.R_cam_from_local, pose_of.whole_box.t_cam_from_local
+    misfit = box_misfits(R, t, members, scene)
+    misfit = misfit[np.isfinite(misfit)]
+    return float(np.median(misfit)) if len(misfit) >= 5 else float("inf")
+
+
+def set_aside(candidates: Sequence[Candidate], scene: Scene) -> tuple[list[Candidate], StageReport | None]:
+    """The candidates without those another one explains but which cannot explain it (both seen on at
+    least two traversals): the other's pose reproduces their boxes as the calibration vehicle
+    (explain_limit), theirs does not reproduce the other's, and on the boxes of both together the other's
+    pose fits better (so a pose whose own fit is poor, and whose limit is wide, cannot set a better one
+    aside). Two wrong poses, or a right and a mirrored one that explain each other's boxes, set nothing
+    aside: rank's ambiguity rule judges them."""
+    multi = [c for c in candidates if c.traversals >= 2]
+    lines: list[str] = []
+    aside: set[int] = set()
+    for weaker in multi:
+        for stronger in multi:
+            if stronger is weaker:
+                continue
+            covers = median_misfit(stronger, scene.members(weaker.track_ids), scene)
+            if covers > explain_limit(stronger):
+                continue
+            back = median_misfit(weaker, scene.members(stronger.track_ids), scene)
+            if back <= explain_limit(weaker):
+                continue
+            both = scene.members(sorted(set(weaker.track_ids) | set(stronger.track_ids)))
+            if median_misfit(stronger, both, scene) >= median_misfit(weaker, both, scene):
+                continue
+            aside.add(id(weaker))
+            lines.append(
+                f"tracks {list(weaker.track_ids)} set aside: the pose of tracks {list(stronger.track_ids)} "
+                f"explains their boxes (median misfit {100 * covers:.1f} %), theirs does not explain its "
+                f"({100 * back:.1f} %)"
+            )
+            break
+    kept = [c for c in candidates if id(c) not in aside]
+    if not aside or not any(c.traversals >= 2 for c in kept):
+        return list(candidates), None
+    return kept, StageReport("set aside", len(kept), len(aside), tuple(lines))
+
+
 def extend(chosen: Candidate, scene: Scene) -> Candidate:
     """Add every other track that the chosen pose explains as the calibration vehicle, and refine again.
 
@@ -403,7 +456,7 @@ def extend(chosen: Candidate, scene: Scene) -> Candidate:
     Kept only if the union's pose agrees with the chosen one and fits as well.
     """
     R, t = chosen.whole_box.R_cam_from_local, chosen.whole_box.t_cam_from_local
-    limit = max(0.10, 2.5 * chosen.box_error_rel)
+    limit = explain_limit(chosen)
     members = scene.members(chosen.track_ids)
     extra: list[tuple[float, MatchedTrack]] = []
     for track in scene.tracks.values():
@@ -430,15 +483,20 @@ def extend(chosen: Candidate, scene: Scene) -> Candidate:
 
 
 def choose(candidates: Sequence[Candidate], scene: Scene) -> Choice:
-    """Rank the candidates (with the ambiguity rule), then extend the best by the tracks its pose explains."""
-    best, ambiguity = rank(candidates, scene.selection)
+    """Set aside the candidates another one explains, rank the rest (with the ambiguity rule), then extend
+    the best by the tracks its pose explains."""
+    kept, aside = set_aside(candidates, scene)
+    reports = () if aside is None else (aside,)
+    best, ambiguity = rank(kept, scene.selection)
     extended = extend(best, scene)
     if extended is best:
-        return Choice(best, ambiguity, tuple(candidates), None)
+        return Choice(best, ambiguity, tuple(candidates), reports)
     report = StageReport(
         "extension",
         len(extended.track_ids) - len(best.track_ids),
         0,
         (f"tracks the chosen pose explains added: {describe(extended)}",),
     )
-    return Choice(extended, ambiguity, tuple(extended if c is best else c for c in candidates), report)
+    return Choice(
+        extended, ambiguity, tuple(extended if c is best else c for c in candidates), (*reports, report)
+    )
