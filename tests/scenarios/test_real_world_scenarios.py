@@ -132,6 +132,20 @@ def test_a_refusal_on_precision_alone_does_not_search_the_clock_again() -> None:
     assert "after the refusal" not in _stage_notes(outcome, "clock scan")
 
 
+def test_after_a_refusal_the_scanned_clocks_refusal_on_precision_alone_is_the_result() -> None:
+    # slope seed 0: on the assumed clock (0; the latency is about 150 ms) one drive-past's tracks group and
+    # their pose, 54 m off, is refused ("traversals = 1 < 2"). The clock scan after that refusal finds the
+    # drive-pasts agreeing 150 ms away, where the pose is refused on its stds alone (measured in
+    # bench.accuracy: 0.35 m off at a std of 0.20 m, the clock within 1 ms). That is the refusal the
+    # result gives: its drive-pasts agree, which the assumed clock's refusal could not say.
+    outcome, evaluation, true_ms = _run("slope", 0)
+    assert "the assumed clock's pose was refused" in _stage_notes(outcome, "clock scan")
+    assert outcome.result.verdict.status == "refused" and outcome.imprecise
+    assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.5
+    assert outcome.result.time_offset_ns is not None
+    assert abs(outcome.result.time_offset_ns / 1e6 - true_ms) < 10.0
+
+
 @pytest.mark.parametrize(
     ("preset", "seed", "camera_index"), [("slope", 4, 0), ("sil-west", 0, 1), ("van", 3, 0)]
 )
