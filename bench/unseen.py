@@ -42,7 +42,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bench.accuracy import Run, coverage_line, is_false_accept, run_tasks
+from bench.accuracy import Run, _fmt, _is_accepted, coverage_line, is_false_accept, run_tasks
 from bench.common import limit_threads, tree_state
 
 if TYPE_CHECKING:
@@ -254,10 +254,6 @@ def describe(config: ScenarioConfig) -> str:
     )
 
 
-def _fmt(value: float | None, spec: str) -> str:
-    return "-" if value is None else format(value, spec)
-
-
 def report(runs: Sequence[Run]) -> tuple[str, bool]:
     """The table and summary lines, and whether the benchmark passed (no false accept, no error)."""
     lines = []
@@ -271,7 +267,7 @@ def report(runs: Sequence[Run]) -> tuple[str, bool]:
             f"(std {_fmt(run.get('rotation_std_deg'), '.3f')}) "
             f"clock err {_fmt(run.get('time_offset_error_ms'), '.1f')} ms  {str(reason)[:90]}"
         )
-    accepted = [r for r in runs if r["verdict"] == "accepted"]
+    accepted = [r for r in runs if _is_accepted(r)]
     false_accepts = [r for r in accepted if is_false_accept(r)]
     errors = [r for r in runs if r["verdict"] == "error"]
     lines.append("")

@@ -462,10 +462,9 @@ def extend(chosen: Candidate, scene: Scene) -> Candidate:
     for track in scene.tracks.values():
         if track.track_id in chosen.track_ids or len(track.boxes) < 5:
             continue
-        misfit = box_misfits(R, t, [track], scene)
-        misfit = misfit[np.isfinite(misfit)]
-        if len(misfit) >= 5 and float(np.median(misfit)) <= limit:
-            extra.append((float(np.median(misfit)), track))
+        misfit = median_misfit(chosen, [track], scene)
+        if misfit <= limit:
+            extra.append((misfit, track))
     added = apart_in_time(extra, track_spans(members))
     if not added:
         return chosen
