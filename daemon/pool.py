@@ -17,6 +17,7 @@ import os
 import signal
 import threading
 import time
+import weakref
 from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -120,9 +121,10 @@ class JobRunner:
     job). As a backstop each worker reports which job it starts, and a watchdog thread kills a worker (and
     its track pool) whose job is still running `kill_grace_s` after its limit: stuck in a native call that
     never returns to Python, or stopped. That job's future then holds the outcome "timed out after N s: the
-    worker did not stop and was killed"; the pool is replaced at once; its jobs that no worker had taken
-    yet move to the new pool, the others (running, or already in the pool's call queue) fail with
-    BrokenProcessPool, as when a worker dies of other causes.
+    worker did not stop and was killed"; the pool is replaced at once, and every other unfinished job of
+    the killed pool (queued, in its call queue, or running on a worker the broken pool terminates) runs
+    again in the new one. A worker that dies of other causes (out of memory) fails its pool's jobs with
+    BrokenProcessPool.
 
     Every pool is created on one thread of the runner's own: a worker dies with the thread that started it
     (daemon.workers.die_with_parent), and that thread lives until shutdown, whichever thread submits.
@@ -141,6 +143,8 @@ class JobRunner:
         self._lock = threading.Lock()
         self._jobs: dict[int, _Job] = {}  # by a sequence number of the runner's (job ids may repeat)
         self._killed: dict[int, float] = {}  # jobs whose worker the watchdog killed: seconds they ran
+        # Pools the watchdog broke: their other jobs run again (weak: a replaced pool is not kept for this).
+        self._killed_pools: weakref.WeakSet[ProcessPoolExecutor] = weakref.WeakSet()
         self._next_seq = 0
         self._closed = False
         self._started_reader, self._started_writer = self._context.Pipe(duplex=False)
@@ -208,14 +212,21 @@ class JobRunner:
 
     def _settle(self, seq: int, task: Future[JobOutcome]) -> None:
         """A pool task ended: pass its outcome to the caller's future, the backstop's timeout outcome for a
-        killed worker, or run the job again if a pool replacement cancelled it before any worker took it."""
+        killed worker, or run the job again if a pool replacement cancelled it, or if the watchdog's kill of
+        another job's worker broke its pool."""
         with self._lock:
             job = self._jobs.get(seq)
             ran_s = self._killed.pop(seq, None)
             if job is None or job.task is not task:
                 return  # the caller cancelled its future (see _forget)
             retry: Future[JobOutcome] | None = None
-            if task.cancelled() and not self._closed:
+            broken_by_us = (
+                ran_s is None
+                and job.pool in self._killed_pools
+                and not task.cancelled()
+                and isinstance(task.exception(), BrokenProcessPool)
+            )
+            if (task.cancelled() or broken_by_us) and not self._closed:
                 with contextlib.suppress(BrokenProcessPool):  # the new pool broke too: the job fails
                     retry = job.task = self._pool.submit(_run_reported, seq, job.spec)
                     job.pool = self._pool
@@ -291,13 +302,14 @@ class JobRunner:
             if self._closed or job is None:
                 return
             self._killed[seq] = ran_s
+            self._killed_pools.add(job.pool)
             stale = self._replace_pool_locked() if self._pool is job.pool else None
-            waiting = [other.task for other in self._jobs.values() if other.pool is job.pool]
-        # Jobs no worker has taken yet cancel here and run in the new pool (see _settle). The kill comes
+        # The pool's other jobs fail with BrokenProcessPool once the kill breaks it, and _settle runs them
+        # again in the new pool. They are not cancelled here: CPython 3.11's pool manager sets that error on
+        # every work item it still holds, and on one cancelled a moment before it raised InvalidStateError
+        # and died mid-cleanup (a full suite's worker process misbehaved from then on). The kill comes
         # before the log line: nothing the watchdog does after deciding may stand between it and the kill
         # (a full suite once hung with this thread waiting on the logging module's lock, the worker alive).
-        for task in waiting:
-            task.cancel()
         for child in descendant_pids(pid):
             kill_pid(child)
         kill_pid(pid)
