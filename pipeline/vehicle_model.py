@@ -60,8 +60,8 @@ from pipeline.refinement import (
 from pipeline.vehicle import body_points_to_world, rotated_body_points
 from schemas.common import VehicleProfile
 
-_POSE, _DELTA, _SHAPE, _BIAS, _READOUT = slice(0, 6), 6, slice(7, 13), slice(13, 18), 18
-N_PARAMS = 19
+_POSE, _DELTA, _SHAPE, _BIAS, _READOUT = slice(0, 6), 6, slice(7, 14), slice(14, 19), 19
+N_PARAMS = 20
 TIME_SHIFT = _DELTA  # the time shift's column in a parameter vector (consider_moves)
 POSE_COLUMNS = _POSE  # the pose's columns [w, C] in a parameter vector
 READOUT = _READOUT  # the readout's column
@@ -76,7 +76,9 @@ SHAPE_NAMES = (
     "roof_x_front_m",
     "roof_x_back_m",
     "roof_inset_m",
+    "roof_raise_m",
 )
+ROOF_RAISE = _SHAPE.start + SHAPE_NAMES.index("roof_raise_m")  # its column in a parameter vector
 BIAS_NAMES = ("scale", "shift_x_px", "shift_y_px", "grow_x_px", "grow_y_px")
 # Edge offsets of the detector convention from (shift_x, shift_y, grow_x, grow_y), per edge x1, y1, x2, y2.
 _OFFSET_FROM_BIAS = np.array(
@@ -102,8 +104,16 @@ class ModelParams:
     # A fitted readout within max(3 std, this) of 0 is held at 0 (a global shutter): left free it absorbs
     # what else varies with the image row (the first simulator's drifting IMU poses: -2.5 +- 0.8 ms).
     min_readout_s: float = 0.005
-    # Template: clearance and shoulder heights (m), roof span ends (m along the body) and roof inset (m).
-    shape_std: tuple[float, float, float, float, float, float] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4)
+    # Template: clearance and shoulder heights (m), roof span ends (m along the body), roof inset (m) and
+    # the roof's raise above the data sheet's height (m). The data sheet's H excludes what a calibration
+    # vehicle may carry on its roof (a roof box or rack: 0.1-0.55 m; a survey vehicle's sensor rack), and a
+    # box top the model puts at H that the detector draws higher moves a low camera down by the difference:
+    # the raise is fitted, and kept only where the boxes show it (final_fit.joint_fit, min_roof_raise_m).
+    shape_std: tuple[float, ...] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4, 0.6)  # SHAPE_NAMES
+    # A fitted raise within max(3 std, this) of 0 is held at 0 (the data sheet's roof), and its std enters the
+    # pose's uncertainty as a consider parameter: a roof the data barely fix is a camera height they barely
+    # fix (0.05 m: a roof's rails and antenna, within the template's own point std).
+    min_roof_raise_m: float = 0.05
     scale_std: float = 0.1  # detector box scale about its centre
     # The detector's convention: boxes shifted as a whole (px) and grown or shrunk by a constant (px). A shift
     # of every box by d px looks almost exactly like the camera turned by d / f rad: the data tell them apart
@@ -159,7 +169,8 @@ class ModelParams:
     # this (median |edge residual| px per traversal): below it both fit to within the detector's rounding.
     template_floor_px: float = 0.2
     # The boxes show a body other than the cuboid when the template fit departs from it by more than this
-    # chi-square (6 dof, the shape parameters against their own covariance). Measured: 11-33 on the first
+    # chi-square (6 dof, the shape parameters but the roof's raise against their own covariance; measured
+    # before the raise was a parameter). Measured: 11-33 on the first
     # simulator's cuboid boxes (its drifting IMU poses give more than the 6 expected), 196-1976 on shaped
     # bodies (8 scenes); p = 1e-19 at 100.
     cuboid_rejection_chi2: float = 100.0
@@ -212,7 +223,7 @@ class ModelFit:
     time_shift_s / time_shift_std_s: delta (the box stamped t shows the trajectory at t - delta, on the
     image's middle row); readout_s / readout_std_s: the rolling shutter's readout time (a box centred on row
     v of an image `height` rows tall shows the trajectory at t - delta + readout_s (v / height - 1/2)).
-    shape (5,) SHAPE_NAMES, bias (5,) BIAS_NAMES, with their stds.
+    shape (7,) SHAPE_NAMES, bias (5,) BIAS_NAMES, with their stds.
     residuals_px (N, 4): model box minus detected box, NaN on clipped edges; box_track_ids, stamps (N,).
     """
 
@@ -267,11 +278,13 @@ class ModelFit:
 
 
 def template_points(shape: FloatArray, vehicle: VehicleProfile) -> FloatArray:
-    """The 12 template points (12, 3) in the vehicle box frame for shape parameters (6,) SHAPE_NAMES: the
+    """The 12 template points (12, 3) in the vehicle box frame for shape parameters (7,) SHAPE_NAMES: the
     body's lower rectangle (full length and width) at z_low, the wheels' contact rectangle on the road
-    (overhang in from each end, inset from each side) and the roof rectangle at the height H."""
-    L, W, H = vehicle.length, vehicle.width, vehicle.height
-    z_low, overhang, inset, x_front, x_back, y_in = (float(v) for v in shape)
+    (overhang in from each end, inset from each side) and the roof rectangle at the height H plus the
+    roof's raise."""
+    L, W = vehicle.length, vehicle.width
+    z_low, overhang, inset, x_front, x_back, y_in, raise_m = (float(v) for v in shape)
+    H = vehicle.height + raise_m
     rect = np.array([[0.0, 0.0], [L, 0.0], [L, W], [0.0, W]])
     wheels = np.array(
         [[overhang, inset], [L - overhang, inset], [L - overhang, W - inset], [overhang, W - inset]]
@@ -288,7 +301,7 @@ def template_points(shape: FloatArray, vehicle: VehicleProfile) -> FloatArray:
 
 def cuboid_shape(vehicle: VehicleProfile) -> FloatArray:
     """Shape parameters of the profile's cuboid: the start and the prior mean."""
-    return np.array([0.0, 0.0, 0.0, vehicle.length, 0.0, 0.0])
+    return np.array([0.0, 0.0, 0.0, vehicle.length, 0.0, 0.0, 0.0])
 
 
 class PoseSampler:
@@ -563,9 +576,9 @@ class _Model:
     def _shape_steps(
         self, x: FloatArray, poses: FloatArray, R_body: FloatArray, uv: FloatArray
     ) -> FloatArray:
-        """The raw boxes (6, N, 4) with each shape parameter in turn stepped by shape_step (the forward
+        """The raw boxes (7, N, 4) with each shape parameter in turn stepped by shape_step (the forward
         differences of the template), from the poses, body rotations and projected template points (N, 12,
-        2) at x: only the points a step moves (20 of the 6 x 12) are placed and projected again."""
+        2) at x: only the points a step moves (24 of the 7 x 12) are placed and projected again."""
         points = template_points(x[_SHAPE], self.vehicle)
         point_sets, moved = [], []
         for j in range(_SHAPE.start, _SHAPE.stop):
@@ -1418,6 +1431,7 @@ def consider_moves(
     point_std_m: float,
     shift_std_px: float,
     readout_std_s: float = 0.0,
+    roof_raise_std_m: float = 0.0,
 ) -> FloatArray:
     """What the fit holds but the world may not (Schmidt's consider parameters): the fit's response
     (K, N_PARAMS) to each moved by its std, one row each. The pose columns' outer product is the pose's
@@ -1430,9 +1444,11 @@ def consider_moves(
     point displaced by `point_std_m` along each body axis in turn (36 rows; the data cannot tell them from
     the pose: every view of the body shares them, and fitted to the truth's own tracks from the true pose
     the template still landed 0.15-0.5 m / 0.1-0.45 deg off with a sandwich std of 0.07-0.1 m / 0.09-0.12
-    deg); last, with `readout_std_s`, the readout moved by that std, for a fit that held it (a readout the
-    data could not tell from 0 is known only to their std). (0, N_PARAMS) when every std is 0."""
-    if point_std_m <= 0.0 and shift_std_px <= 0.0 and readout_std_s <= 0.0:
+    deg); then, with `roof_raise_std_m`, the roof's raise moved by that std, for a fit that held it at the
+    data sheet's roof (known only to the finding fit's std of it); last, with `readout_std_s`, the readout
+    moved by that std, for a fit that held it (a readout the data could not tell from 0 is known only to
+    their std). (0, N_PARAMS) when every std is 0."""
+    if point_std_m <= 0.0 and shift_std_px <= 0.0 and readout_std_s <= 0.0 and roof_raise_std_m <= 0.0:
         return np.zeros((0, N_PARAMS + len(fit.height_offsets_m)))
     response = _Response.of(fit, tracks, trajectory, camera, vehicle, params, readout_std_s > 0.0)
     if response is None:
@@ -1442,7 +1458,9 @@ def consider_moves(
     if point_std_m > 0.0:
         changes.append(_displaced_point_changes(model, x, vehicle, camera, params, point_std_m))
     rows = np.vstack(changes) / model.data_scale if changes else np.zeros((0, model.data_rows))
-    if readout_std_s > 0.0:  # the Jacobian is in row units
+    if roof_raise_std_m > 0.0:  # the Jacobian is in row units
+        rows = np.vstack([rows, roof_raise_std_m * response.J_all[: model.data_rows, ROOF_RAISE]])
+    if readout_std_s > 0.0:
         rows = np.vstack([rows, readout_std_s * response.J_all[: model.data_rows, _READOUT]])
     return response.moves(rows)
 
@@ -1594,9 +1612,9 @@ def chi2_quantile(upper: float, dof: int) -> float:
 
 
 def cuboid_rejection(fit: ModelFit, vehicle: VehicleProfile) -> float:
-    """Chi-square (6 dof) of the fitted template's departure from the profile's cuboid, against the shape
-    parameters' own covariance (the marginal block of the full one): how strongly the boxes reject the
-    cuboid body. 0 for a fit whose shape was held at the cuboid."""
+    """Chi-square (7 dof; 6 with the roof's raise held) of the fitted template's departure from the
+    profile's cuboid, against the shape parameters' own covariance (the marginal block of the full one): how
+    strongly the boxes reject the cuboid body. 0 for a fit whose shape was held at the cuboid."""
     departure = fit.shape - cuboid_shape(vehicle)
     block = fit.full_covariance[_SHAPE, _SHAPE]
     if not np.all(np.isfinite(block)) or float(np.max(np.abs(departure))) == 0.0:
@@ -1609,7 +1627,7 @@ def cuboid_params(params: ModelParams) -> ModelParams:
     time shift free (the first simulator's world, and any detector that boxes the cuboid)."""
     return replace(
         params,
-        shape_std=(_HELD,) * 6,
+        shape_std=(_HELD,) * len(SHAPE_NAMES),
         scale_std=_HELD,
         shift_std_px=_HELD,
         fit_shift=False,
