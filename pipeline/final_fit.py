@@ -228,7 +228,8 @@ class JointFit:
     readout_std_s: float
     rejection: float  # cuboid_rejection of the fit
     body_shown: bool  # the boxes reject the cuboid body: the template is the model, this fit's clock final
-    # What the data say about the roof's raise (the finding fit's std); whether it was held at 0.
+    # What the data say about the roof's raise (final_fit's trial with it free, with_roof_raise: its std) and
+    # whether the roof stays held at the data sheet's height; set by with_roof_raise.
     roof_raise_std_m: float = 0.0
     roof_raise_held: bool = True
 
@@ -291,17 +292,6 @@ def joint_fit(
     # The readout likewise: where the data do not show one, the camera is taken to read every row at once.
     if abs(fit.readout_s) <= max(3.0 * fit.readout_std_s, model.min_readout_s):
         model_params = replace(model_params, readout_std_s=1e-9)
-    # And the roof: where the boxes show nothing on it, it is the data sheet's (and the finding fit's std of
-    # its raise is considered with the body in final_fit). Unseen scene 15's hatchback carried a roof box
-    # 0.45 m above its data sheet's height: with the roof held there, its two 6.4 m cameras were fitted 0.48
-    # and 0.34 m too low (one at 3.1 of its reported std).
-    raise_index = _ROOF_RAISE
-    raise_m, raise_std_m = float(fit.shape[raise_index]), float(fit.shape_std[raise_index])
-    roof_held = abs(raise_m) <= max(3.0 * raise_std_m, model.min_roof_raise_m)
-    if roof_held:
-        held_shape = list(model_params.shape_std)
-        held_shape[raise_index] = 1e-9
-        model_params = replace(model_params, shape_std=tuple(held_shape))
     if model_params != finding:
         with contextlib.suppress(DegenerateGeometry):  # keep the finding fit
             fit = fit_vehicle_model(
@@ -322,8 +312,6 @@ def joint_fit(
         readout_std_s,
         rejection,
         rejection > model.cuboid_rejection_chi2,
-        raise_std_m,
-        roof_held,
     )
 
 
@@ -339,6 +327,15 @@ def final_fit(
     misfit is below this share of the cuboid's. `map_fn` runs the leave-one-out and split-half fits
     (independent; a process pool's map runs them side by side with identical results)."""
     trajectory, camera, vehicle = scene.trajectory, scene.camera, scene.vehicle
+    # The roof: fitted again with its raise above the data sheet's height free, and kept where the boxes show
+    # one (more than 3 std and min_roof_raise_m). Unseen scene 15's hatchback carried a roof box 0.45 m
+    # above its data sheet's height: with the roof held there, its two 6.4 m cameras were fitted 0.48 and
+    # 0.34 m too low (one at 3.1 of its reported std). Tried here, on the clock the pass settled on, not in
+    # joint_fit: a first pass on a clock 117 ms off kept a raise that took up part of the clock error, so
+    # its estimate no longer called for the rerun on the right clock (realistic sil-north seed 1); free in
+    # the finding fit, it did the same to a clock 35 ms off on the first simulator's cuboid boxes (sil-west
+    # seed 9, ideal). Where it stays held, the trial's std of it is considered with the body (below).
+    joint = with_roof_raise(joint, scene, model)
     fit, used, members = joint.fit, joint.used, joint.members
     model_params, time_offset_std_s = joint.model_params, joint.time_offset_std_s
     # Does the vehicle need the template and the detector convention at all? Where the boxes are the
@@ -494,6 +491,35 @@ def final_fit(
 
 
 _ROOF_RAISE = SHAPE_NAMES.index("roof_raise_m")  # its index among the shape parameters
+
+
+def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams) -> JointFit:
+    """`joint` (the roof held at the data sheet's height) with its fit done again with the roof's raise
+    free (prior 0 +- model.roof_raise_std_m): the raised fit replaces joint's when its raise exceeds
+    max(3 std, model.min_roof_raise_m) and it converged. Either way the result carries the trial's std of
+    the raise (0 when the trial fails: nothing is known to consider) and whether the roof stays held."""
+    fit, params = joint.fit, joint.model_params
+    free = list(params.shape_std)
+    free[_ROOF_RAISE] = model.roof_raise_std_m
+    raised_params = replace(params, shape_std=tuple(free))
+    try:
+        raised = fit_vehicle_model(
+            fit.R_cam_from_local,
+            fit.t_cam_from_local,
+            joint.used,
+            scene.trajectory,
+            scene.camera,
+            scene.vehicle,
+            raised_params,
+        )
+    except DegenerateGeometry:
+        return replace(joint, roof_raise_std_m=0.0, roof_raise_held=True)
+    raise_m, std_m = float(raised.shape[_ROOF_RAISE]), float(raised.shape_std[_ROOF_RAISE])
+    if raised.converged and abs(raise_m) > max(3.0 * std_m, model.min_roof_raise_m):
+        return replace(
+            joint, fit=raised, model_params=raised_params, roof_raise_std_m=std_m, roof_raise_held=False
+        )
+    return replace(joint, roof_raise_std_m=std_m, roof_raise_held=True)
 
 
 def _split_readout_row(moves: FloatArray, has_readout_row: bool) -> tuple[FloatArray, FloatArray]:
