@@ -192,6 +192,38 @@ def test_a_roof_box_above_the_data_sheets_height_is_fitted_and_gives_back_the_po
     assert np.linalg.norm(noisy.camera_centre - C_TRUE) < 3 * noisy.position_std_m
 
 
+def test_a_roof_held_at_the_data_sheets_height_moves_the_camera_as_its_considered_std_says():
+    """A roof 0.1 m above the data sheet's (exact boxes), fitted with the roof held there: the camera moves
+    off the truth; the fit's response to the roof raised by 0.1 m, as a consider parameter (the row
+    consider_moves adds for roof_raise_std_m), is that move to first order, and it grows with the std."""
+    index = SHAPE_NAMES.index("roof_raise_m")
+    raised = SHAPE_TRUE.copy()
+    raised[index] = 0.1
+    R0, t0 = _start()
+    trajectory, plain_tracks = _scene()
+    plain = fit_vehicle_model(R0, t0, plain_tracks, trajectory, CAMERA, VEHICLE, FLAT)
+    _, raised_tracks = _scene(shape=raised)
+    held = fit_vehicle_model(R0, t0, raised_tracks, trajectory, CAMERA, VEHICLE, FLAT)
+    moved = held.camera_centre - plain.camera_centre
+    assert np.linalg.norm(moved) > 0.01  # measured: 0.044 m, nearly all in height
+    rows = {
+        std: consider_moves(plain, plain_tracks, trajectory, CAMERA, VEHICLE, FLAT, 0.0, 0.0, 0.0, std)
+        for std in (0.05, 0.1)
+    }
+    assert rows[0.1].shape == (1, N_PARAMS)
+    # The row is the fit's response to the model's roof raised, so the truth's raised roof moves the fit the
+    # other way (the sign is immaterial to the covariance); to first order, 1 % here (measured).
+    predicted = rows[0.1][0, 3:6]  # the camera centre's columns
+    assert 0.9 < -float(predicted @ moved) / float(moved @ moved) < 1.1, (predicted, moved)
+    ratio = np.linalg.norm(rows[0.1][0, 3:6]) / np.linalg.norm(rows[0.05][0, 3:6])
+    assert 1.8 < ratio < 2.2
+    # The body's 36 rows come first, unchanged by the roof's.
+    both = consider_moves(plain, plain_tracks, trajectory, CAMERA, VEHICLE, FLAT, 0.1, 0.0, 0.0, 0.1)
+    body = consider_moves(plain, plain_tracks, trajectory, CAMERA, VEHICLE, FLAT, 0.1, 0.0)
+    np.testing.assert_allclose(both[:36], body)
+    np.testing.assert_allclose(both[36], rows[0.1][0])
+
+
 def test_noisy_boxes_error_within_three_reported_std():
     beyond = 0
     for seed in range(6):
