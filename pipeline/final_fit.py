@@ -85,7 +85,7 @@ class FinalFit:
     # (consider parameters); where held at 0, what the data say (the finding fit's).
     readout_std_s: float = 0.0
     # The roof's raise above the data sheet's height (m) and its std: fitted where the boxes show one (a roof
-    # box), else held at 0 and known only to the finding fit's std, considered with the body.
+    # box), else held at 0 and known only to the std of with_roof_raise's trial, considered with the body.
     roof_raise_m: float = 0.0
     roof_raise_std_m: float = 0.0
     roof_raise_held: bool = True
@@ -392,7 +392,7 @@ def final_fit(
     held_readout_std_s = joint.readout_std_s if model_params.readout_std_s <= HELD_STD else 0.0
     body_std_m = model.template_point_std_m if templated else 0.0
     shift_std_px = model.shift_std_px if templated else 0.0
-    # A roof held at the data sheet's height is known only to the finding fit's std of its raise.
+    # A roof held at the data sheet's height is known only to the trial's std of its raise.
     roof_std_m = joint.roof_raise_std_m if templated and joint.roof_raise_held else 0.0
     moves = consider_moves(
         fit,
@@ -476,9 +476,13 @@ def final_fit(
         time_offset_std_s=math.sqrt(sum(std**2 for _, std in time_parts)),
         time_offset_parts=time_parts,
         readout_std_s=readout_std_s,
-        roof_raise_m=float(fit.shape[_ROOF_RAISE]) if templated else 0.0,
+        roof_raise_m=float(fit.shape[_RAISE_INDEX]) if templated else 0.0,
         roof_raise_std_m=(
-            (roof_std_m if joint.roof_raise_held else float(fit.shape_std[_ROOF_RAISE])) if templated else 0.0
+            0.0
+            if not templated
+            else roof_std_m
+            if joint.roof_raise_held
+            else float(fit.shape_std[_RAISE_INDEX])
         ),
         roof_raise_held=joint.roof_raise_held,
         shape_covariance=shape_covariance,
@@ -490,7 +494,7 @@ def final_fit(
     )
 
 
-_ROOF_RAISE = SHAPE_NAMES.index("roof_raise_m")  # its index among the shape parameters
+_RAISE_INDEX = SHAPE_NAMES.index("roof_raise_m")  # its index among the shape parameters
 
 
 def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams) -> JointFit:
@@ -500,7 +504,7 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams) -> JointF
     the raise (0 when the trial fails: nothing is known to consider) and whether the roof stays held."""
     fit, params = joint.fit, joint.model_params
     free = list(params.shape_std)
-    free[_ROOF_RAISE] = model.roof_raise_std_m
+    free[_RAISE_INDEX] = model.roof_raise_std_m
     raised_params = replace(params, shape_std=tuple(free))
     try:
         raised = fit_vehicle_model(
@@ -514,7 +518,7 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams) -> JointF
         )
     except DegenerateGeometry:
         return replace(joint, roof_raise_std_m=0.0, roof_raise_held=True)
-    raise_m, std_m = float(raised.shape[_ROOF_RAISE]), float(raised.shape_std[_ROOF_RAISE])
+    raise_m, std_m = float(raised.shape[_RAISE_INDEX]), float(raised.shape_std[_RAISE_INDEX])
     if raised.converged and abs(raise_m) > max(3.0 * std_m, model.min_roof_raise_m):
         return replace(
             joint, fit=raised, model_params=raised_params, roof_raise_std_m=std_m, roof_raise_held=False

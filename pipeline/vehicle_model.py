@@ -108,8 +108,8 @@ class ModelParams:
     # the roof's raise above the data sheet's height (m). The data sheet's H excludes what a calibration
     # vehicle may carry on its roof (a roof box or rack: 0.1-0.55 m; a survey vehicle's sensor rack), and a
     # box top the model puts at H that the detector draws higher moves a low camera down by the difference:
-    # the raise is held (at the data sheet's roof) in every fit, and final_fit.joint_fit fits it again with
-    # this prior, keeping it where the boxes show one.
+    # the raise is held (at the data sheet's roof) in every fit, and final_fit.with_roof_raise fits it
+    # again with this prior, keeping it where the boxes show one.
     shape_std: tuple[float, ...] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4, _HELD)  # SHAPE_NAMES
     roof_raise_std_m: float = 0.6
     # A fitted raise within max(3 std, this) of 0 stays held at 0, and its std enters the pose's uncertainty
@@ -1447,7 +1447,7 @@ def consider_moves(
     the pose: every view of the body shares them, and fitted to the truth's own tracks from the true pose
     the template still landed 0.15-0.5 m / 0.1-0.45 deg off with a sandwich std of 0.07-0.1 m / 0.09-0.12
     deg); then, with `roof_raise_std_m`, the roof's raise moved by that std, for a fit that held it at the
-    data sheet's roof (known only to the finding fit's std of it); last, with `readout_std_s`, the readout
+    data sheet's roof (known only to the std of a fit with it free); last, with `readout_std_s`, the readout
     moved by that std, for a fit that held it (a readout the data could not tell from 0 is known only to
     their std). (0, N_PARAMS) when every std is 0."""
     if point_std_m <= 0.0 and shift_std_px <= 0.0 and readout_std_s <= 0.0 and roof_raise_std_m <= 0.0:
@@ -1617,8 +1617,7 @@ def cuboid_rejection(fit: ModelFit, vehicle: VehicleProfile) -> float:
     """Chi-square (6 dof) of the fitted template's departure from the profile's cuboid, against the shape
     parameters' own covariance (the marginal block of the full one): how strongly the boxes reject the
     cuboid body. 0 for a fit whose shape was held at the cuboid. The roof's raise is not counted: it is
-    what the vehicle carries, not its body, and left free on the first simulator's cuboid boxes it took up
-    a clock 35 ms off (sil-west seed 9, ideal: chi-square 152 with it, the cuboid wrongly rejected)."""
+    what the vehicle carries, not its body (and cuboid_rejection_chi2 was measured on the six)."""
     body = [i for i, name in enumerate(SHAPE_NAMES) if name != "roof_raise_m"]
     departure = (fit.shape - cuboid_shape(vehicle))[body]
     block = fit.full_covariance[_SHAPE, _SHAPE][np.ix_(body, body)]
