@@ -133,6 +133,21 @@ def test_a_roof_the_boxes_cannot_tell_from_a_lower_camera_stays_held_and_its_std
             assert "its raise known to +-" in final.report(0).notes[0]
 
 
+@pytest.mark.parametrize(("drawn_share", "kept"), [(0.6, True), (0.3, False)])
+def test_a_roof_fitted_below_half_the_data_sheets_height_is_not_kept(drawn_share: float, kept: bool) -> None:
+    """Boxes of a body 0.6 or 0.3 of its data sheet's height: the trial fits a raise well beyond 3 of its
+    std either way (measured: -0.51 and -0.91 +- 0.17 m); 0.6 H is kept (a pickup's bed rails are that
+    high), a roof below half the data sheet's height is the template failing and stays held."""
+    model = ModelParams()
+    pose = true_pose()
+    scene, tracks = _scene(60.0, VEHICLE.model_copy(update={"height": VEHICLE.height * drawn_share}))
+    candidate = refine_group(tracks, [hypothesis(0, pose), hypothesis(1, pose)], scene)
+    tried = with_roof_raise(joint_fit(candidate, scene, model, 0.01), scene, model)
+    assert tried.roof_raise_held is not kept
+    if kept:
+        assert tried.fit.shape[-1] < -3 * tried.roof_raise_std_m
+
+
 @pytest.mark.parametrize("batch_boxes", [1, 150, 4096])
 def test_each_tracks_box_error_from_one_model_is_its_own(
     batch_boxes: int, monkeypatch: pytest.MonkeyPatch
