@@ -22,7 +22,7 @@ from pipeline.vehicle_model import (
     HELD_STD,
     POSE_COLUMNS,
     READOUT,
-    SHAPE_NAMES,
+    ROOF_RAISE_INDEX,
     TIME_SHIFT,
     ModelFit,
     ModelParams,
@@ -476,14 +476,8 @@ def final_fit(
         time_offset_std_s=math.sqrt(sum(std**2 for _, std in time_parts)),
         time_offset_parts=time_parts,
         readout_std_s=readout_std_s,
-        roof_raise_m=float(fit.shape[_RAISE_INDEX]) if templated else 0.0,
-        roof_raise_std_m=(
-            0.0
-            if not templated
-            else roof_std_m
-            if joint.roof_raise_held
-            else float(fit.shape_std[_RAISE_INDEX])
-        ),
+        roof_raise_m=float(fit.shape[ROOF_RAISE_INDEX]) if templated else 0.0,
+        roof_raise_std_m=joint.roof_raise_std_m if templated else 0.0,
         roof_raise_held=joint.roof_raise_held,
         shape_covariance=shape_covariance,
         readout_covariance=readout_covariance,
@@ -494,9 +488,6 @@ def final_fit(
     )
 
 
-_RAISE_INDEX = SHAPE_NAMES.index("roof_raise_m")  # its index among the shape parameters
-
-
 def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams) -> JointFit:
     """`joint` (the roof held at the data sheet's height) with its fit done again with the roof's raise
     free (prior 0 +- model.roof_raise_std_m): the raised fit replaces joint's when its raise exceeds
@@ -505,7 +496,7 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams) -> JointF
     consider) and whether the roof stays held."""
     fit, params = joint.fit, joint.model_params
     free = list(params.shape_std)
-    free[_RAISE_INDEX] = model.roof_raise_std_m
+    free[ROOF_RAISE_INDEX] = model.roof_raise_std_m
     raised_params = replace(params, shape_std=tuple(free))
     try:
         raised = fit_vehicle_model(
@@ -519,7 +510,7 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams) -> JointF
         )
     except DegenerateGeometry:
         return replace(joint, roof_raise_std_m=0.0, roof_raise_held=True)
-    raise_m, std_m = float(raised.shape[_RAISE_INDEX]), float(raised.shape_std[_RAISE_INDEX])
+    raise_m, std_m = float(raised.shape[ROOF_RAISE_INDEX]), float(raised.shape_std[ROOF_RAISE_INDEX])
     # The top of a road vehicle's silhouette lies above 0.6 of its data sheet's height (a pickup's bed
     # rails); a roof fitted below half of it is the template failing, not the roof (unseen scene 18, a
     # portrait camera: -1.35 +- 0.02 m on a 1.41 m hatchback, the camera 1.12 m too low).

@@ -78,7 +78,8 @@ SHAPE_NAMES = (
     "roof_inset_m",
     "roof_raise_m",
 )
-ROOF_RAISE = _SHAPE.start + SHAPE_NAMES.index("roof_raise_m")  # its column in a parameter vector
+ROOF_RAISE_INDEX = SHAPE_NAMES.index("roof_raise_m")  # the roof's raise among the shape parameters
+ROOF_RAISE = _SHAPE.start + ROOF_RAISE_INDEX  # its column in a parameter vector
 BIAS_NAMES = ("scale", "shift_x_px", "shift_y_px", "grow_x_px", "grow_y_px")
 # Edge offsets of the detector convention from (shift_x, shift_y, grow_x, grow_y), per edge x1, y1, x2, y2.
 _OFFSET_FROM_BIAS = np.array(
@@ -1618,7 +1619,7 @@ def cuboid_rejection(fit: ModelFit, vehicle: VehicleProfile) -> float:
     parameters' own covariance (the marginal block of the full one): how strongly the boxes reject the
     cuboid body. 0 for a fit whose shape was held at the cuboid. The roof's raise is not counted: it is
     what the vehicle carries, not its body (and cuboid_rejection_chi2 was measured on the six)."""
-    body = [i for i, name in enumerate(SHAPE_NAMES) if name != "roof_raise_m"]
+    body = [i for i in range(len(SHAPE_NAMES)) if i != ROOF_RAISE_INDEX]
     departure = (fit.shape - cuboid_shape(vehicle))[body]
     block = fit.full_covariance[_SHAPE, _SHAPE][np.ix_(body, body)]
     if not np.all(np.isfinite(block)) or float(np.max(np.abs(departure))) == 0.0:

@@ -109,9 +109,9 @@ def test_a_roof_the_boxes_cannot_tell_from_a_lower_camera_stays_held_and_its_std
     """Boxes of the vehicle with 0.4 m more on its roof than its data sheet says (a roof box), seen by this
     scene's camera: a lower camera over a lower body bottom draws nearly the same boxes, so the final fit's
     trial of the roof's raise cannot show it (held, its std about 0.2 m on exact boxes) and the held fit
-    lands 0.385 m low; the raise's std, considered with the body, covers that (measured: position std 1.24
-    m). Boxes of the data sheet's own cuboid: the raise stays held at 0 and the camera is exact. (Where the
-    boxes do show a raise, it is fitted: test_vehicle_model's roof-box test.)"""
+    lands 0.385 m low, within its reported std (1.24 m: here mostly the two drive-pasts' scatter; the roof's
+    own consider row is tested in test_vehicle_model, as is a raise the boxes do show). Boxes of the data
+    sheet's own cuboid: the raise stays held at 0 and the camera is exact."""
     model = ModelParams()
     pose = true_pose()
     truth = np.array([0.0, 0.0, 10.0])

@@ -792,7 +792,7 @@ def test_the_boxes_of_a_shaped_body_reject_the_cuboid_and_cuboid_boxes_do_not():
     cuboid_fit = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, ModelParams())
     assert cuboid_rejection(cuboid_fit, VEHICLE) < 30.0
     held = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, cuboid_params(ModelParams()))
-    assert cuboid_rejection(held, VEHICLE) < 1e-5  # seven parameters held by 1e-6 stds: rounding
+    assert cuboid_rejection(held, VEHICLE) < 1e-6
 
 
 def _random_covariance(seed: int) -> np.ndarray:
@@ -908,15 +908,14 @@ def test_the_fits_that_leave_a_drive_past_out_keep_to_the_cameras_readout():
     # so agree (measured: 29.2, 28.8 and 28.4 ms against 29.0 +- 10.5 ms).
     trajectory, tracks = _rolling_scene(READOUT_TRUE_S)
     R0, t0 = _start()
-    params = FLAT
-    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
-    left_out = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, params)
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, FLAT)
+    left_out = leave_one_out(fit, tracks, trajectory, CAMERA, VEHICLE, FLAT)
     assert len(left_out.fits) == 3
     for loo in left_out.fits:
         assert not isinstance(loo, str)
         assert abs(loo.readout_s - fit.readout_s) < fit.readout_std_s
         assert abs(loo.time_shift_s - fit.time_shift_s) < 1e-3
-    check = check_traversals(left_out, trajectory, CAMERA, VEHICLE, params)
+    check = check_traversals(left_out, trajectory, CAMERA, VEHICLE, FLAT)
     assert check.disagreeing == ""
 
 
