@@ -146,6 +146,8 @@ def test_a_roof_fitted_below_half_the_data_sheets_height_is_not_kept(drawn_share
     assert tried.roof_raise_held is not kept
     if kept:
         assert tried.fit.shape[-1] < -3 * tried.roof_raise_std_m
+        # Kept on its cross-validation too: its leave-one-out fits are those final_fit goes on with.
+        assert tried.left_out is not None and tried.left_out.full is tried.fit
 
 
 @pytest.mark.parametrize("batch_boxes", [1, 150, 4096])

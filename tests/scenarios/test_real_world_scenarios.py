@@ -166,6 +166,21 @@ def test_the_reported_uncertainty_covers_a_body_the_template_cannot_describe(
     assert outcome.result.uncertainty is not None  # a pose was reached: the covering is what is tested
 
 
+def test_a_roof_raise_that_predicts_the_left_out_drive_pasts_no_better_stays_held() -> None:
+    # sil-south seed 4, a hatchback: the final fit's trial fits the roof -0.70 +- 0.14 m off its data sheet's
+    # height, 5 of its std; kept on that alone (session 23) the camera landed 0.83 m off. Fitted without each
+    # drive-past in turn, the raised roof predicts the left-out boxes no better than the held one: it takes
+    # up another of the template's errors, not the body's roof. Held, the pose is 0.07 m off (at the time
+    # of writing).
+    outcome, evaluation, _ = _run("sil-south", 4)
+    notes = _stage_notes(outcome, "final fit")
+    assert "with the roof held at the data sheet's height" in notes, notes
+    raise_m = float(notes.split("a raise of ")[1].split(" m predicted the left-out drive-pasts no better")[0])
+    assert raise_m < -0.3
+    assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.5
+    _assert_right_or_refused(outcome, evaluation)
+
+
 @pytest.mark.parametrize(("preset", "seed"), [("sil-south", 1), ("dense-traffic", 4)])
 def test_the_reported_time_offset_std_covers_the_clocks_error(preset: str, seed: int) -> None:
     # The body the template cannot describe moves the vehicle along its track as the fit sees it, and the
