@@ -90,7 +90,7 @@ class FinalFit:
     roof_raise_m: float = 0.0
     roof_raise_std_m: float = 0.0
     roof_raise_held: bool = True
-    roof_raise_unconfirmed_m: float = 0.0  # a raise held because it predicted no better (JointFit's)
+    roof_raise_unconfirmed: str = ""  # a raise held because it predicted no better (JointFit's)
 
     def std_parts(self) -> tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]:
         """Where the largest position std (m) and rotation std (deg) come from (`std_parts`)."""
@@ -138,12 +138,7 @@ class FinalFit:
         if self.roof_raise_std_m <= 0.0:
             return ""
         if self.roof_raise_held:
-            unconfirmed = (
-                f"; a raise of {self.roof_raise_unconfirmed_m:+.2f} m predicted the left-out drive-pasts no "
-                "better"
-                if self.roof_raise_unconfirmed_m
-                else ""
-            )
+            unconfirmed = f"; {self.roof_raise_unconfirmed}" if self.roof_raise_unconfirmed else ""
             return (
                 f" (with the roof held at the data sheet's height, its raise known to "
                 f"+- {self.roof_raise_std_m:.2f} m{unconfirmed})"
@@ -241,8 +236,8 @@ class JointFit:
     roof_raise_std_m: float = 0.0
     roof_raise_held: bool = True
     # A raise the trial fitted beyond its 3 std but held because it predicted the left-out drive-pasts no
-    # better than the roof at the data sheet's height (m; 0: none), for the stage note.
-    roof_raise_unconfirmed_m: float = 0.0
+    # better than the roof at the data sheet's height: what the stage note says of it ("": none).
+    roof_raise_unconfirmed: str = ""
     # The leave-one-out fits of `fit` with `model_params`, where with_roof_raise made them already.
     left_out: LeftOut | None = None
 
@@ -494,7 +489,7 @@ def final_fit(
         roof_raise_m=float(fit.shape[ROOF_RAISE_INDEX]) if templated else 0.0,
         roof_raise_std_m=joint.roof_raise_std_m if templated else 0.0,
         roof_raise_held=joint.roof_raise_held,
-        roof_raise_unconfirmed_m=joint.roof_raise_unconfirmed_m if templated else 0.0,
+        roof_raise_unconfirmed=joint.roof_raise_unconfirmed if templated else "",
         shape_covariance=shape_covariance,
         readout_covariance=readout_covariance,
         body=body,
@@ -548,7 +543,11 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams, map_fn: M
             roof_raise_held=False,
             left_out=raised_out,
         )
-    return replace(held, roof_raise_unconfirmed_m=raise_m, left_out=held_out)
+    unconfirmed = (
+        f"a raise of {raise_m:+.2f} m predicted the left-out drive-pasts no better (their misfit "
+        f"{raised_error:.1f} px against {held_error:.1f} px held)"
+    )
+    return replace(held, roof_raise_unconfirmed=unconfirmed, left_out=held_out)
 
 
 def _split_readout_row(moves: FloatArray, has_readout_row: bool) -> tuple[FloatArray, FloatArray]:
