@@ -546,6 +546,8 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams, map_fn: M
     unconfirmed = (
         f"a raise of {raise_m:+.2f} m predicted the left-out drive-pasts no better (their misfit "
         f"{raised_error:.1f} px against {held_error:.1f} px held)"
+        if math.isfinite(held_error)
+        else f"a raise of {raise_m:+.2f} m could not be checked on left-out drive-pasts"
     )
     return replace(held, roof_raise_unconfirmed=unconfirmed, left_out=held_out)
 

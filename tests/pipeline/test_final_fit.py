@@ -150,6 +150,20 @@ def test_a_roof_fitted_below_half_the_data_sheets_height_is_not_kept(drawn_share
         assert tried.left_out is not None and tried.left_out.full is tried.fit
 
 
+def test_a_roof_raise_that_no_left_out_drive_past_can_check_stays_held() -> None:
+    """The 0.6 H body of the test above, its two drive-pasts 0.1 s apart: one cluster for the leave-one-out
+    fits, so nothing tells the raise from an error of the one drive-past it was fitted on; held, and said."""
+    model = ModelParams()
+    pose = true_pose()
+    scene, tracks = _scene(0.1, VEHICLE.model_copy(update={"height": VEHICLE.height * 0.6}))
+    candidate = refine_group(tracks, [hypothesis(0, pose), hypothesis(1, pose)], scene)
+    joint = joint_fit(candidate, scene, model, 0.01)
+    tried = with_roof_raise(joint, scene, model)
+    assert tried.roof_raise_held and tried.fit is joint.fit
+    assert tried.roof_raise_unconfirmed.startswith("a raise of -0.")  # the trial's, about -0.5 m
+    assert tried.roof_raise_unconfirmed.endswith("m could not be checked on left-out drive-pasts")
+
+
 @pytest.mark.parametrize("batch_boxes", [1, 150, 4096])
 def test_each_tracks_box_error_from_one_model_is_its_own(
     batch_boxes: int, monkeypatch: pytest.MonkeyPatch
