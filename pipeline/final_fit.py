@@ -231,15 +231,19 @@ class JointFit:
     readout_std_s: float
     rejection: float  # cuboid_rejection of the fit
     body_shown: bool  # the boxes reject the cuboid body: the template is the model, this fit's clock final
-    # What the data say about the roof's raise (final_fit's trial with it free, with_roof_raise: its std) and
-    # whether the roof stays held at the data sheet's height; set by with_roof_raise.
+    # What the data say about the roof's raise (final_fit's trial with it free, with_roof_raise: its std);
+    # set by with_roof_raise.
     roof_raise_std_m: float = 0.0
-    roof_raise_held: bool = True
     # A raise the trial fitted beyond its 3 std but held because it predicted the left-out drive-pasts no
     # better than the roof at the data sheet's height: what the stage note says of it ("": none).
     roof_raise_unconfirmed: str = ""
     # The leave-one-out fits of `fit` with `model_params`, where with_roof_raise made them already.
     left_out: LeftOut | None = None
+
+    @property
+    def roof_raise_held(self) -> bool:
+        """Whether the roof stays at the data sheet's height (with_roof_raise frees it only to keep it)."""
+        return self.model_params.shape_std[ROOF_RAISE_INDEX] <= HELD_STD
 
     def time_offset_ns(self, prior_ns: int) -> int:
         return _time_offset_ns(self.fit, prior_ns)
@@ -336,13 +340,14 @@ def final_fit(
     (independent; a process pool's map runs them side by side with identical results)."""
     trajectory, camera, vehicle = scene.trajectory, scene.camera, scene.vehicle
     # The roof: fitted again with its raise above the data sheet's height free, and kept where the boxes show
-    # one (more than 3 std and min_roof_raise_m). Unseen scene 15's hatchback carried a roof box 0.45 m
-    # above its data sheet's height: with the roof held there, its two 6.4 m cameras were fitted 0.48 and
-    # 0.34 m too low (one at 3.1 of its reported std). Tried here, on the clock the pass settled on, not in
-    # joint_fit: a first pass on a clock 117 ms off kept a raise that took up part of the clock error, so
-    # its estimate no longer called for the rerun on the right clock (realistic sil-north seed 1); free in
-    # the finding fit, it did the same to a clock 35 ms off on the first simulator's cuboid boxes (sil-west
-    # seed 9, ideal). Where it stays held, the trial's std of it is considered with the body (below).
+    # one (more than 3 std and min_roof_raise_m) that also predicts left-out drive-pasts better. Unseen
+    # scene 15's hatchback carried a roof box 0.45 m above its data sheet's height: with the roof held
+    # there, its two 6.4 m cameras were fitted 0.48 and 0.34 m too low (one at 3.1 of its reported std).
+    # Tried here, on the clock the pass settled on, not in joint_fit: a first pass on a clock 117 ms off
+    # kept a raise that took up part of the clock error, so its estimate no longer called for the rerun on
+    # the right clock (realistic sil-north seed 1); free in the finding fit, it did the same to a clock 35
+    # ms off on the first simulator's cuboid boxes (sil-west seed 9, ideal). Where it stays held, the
+    # trial's std of it is considered with the body (below).
     joint = with_roof_raise(joint, scene, model, map_fn)
     fit, used, members = joint.fit, joint.used, joint.members
     model_params, time_offset_std_s = joint.model_params, joint.time_offset_std_s
@@ -517,9 +522,9 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams, map_fn: M
             fit.R_cam_from_local, fit.t_cam_from_local, joint.used, trajectory, camera, vehicle, raised_params
         )
     except DegenerateGeometry:
-        return replace(joint, roof_raise_std_m=0.0, roof_raise_held=True)
+        return replace(joint, roof_raise_std_m=0.0)
     raise_m, std_m = float(raised.shape[ROOF_RAISE_INDEX]), float(raised.shape_std[ROOF_RAISE_INDEX])
-    held = replace(joint, roof_raise_std_m=std_m, roof_raise_held=True)
+    held = replace(joint, roof_raise_std_m=std_m)
     # The top of a road vehicle's silhouette lies above 0.6 of its data sheet's height (a pickup's bed
     # rails); a roof fitted below half of it is the template failing, not the roof (unseen scene 18, a
     # portrait camera: -1.35 +- 0.02 m on a 1.41 m hatchback, the camera 1.12 m too low).
@@ -540,7 +545,6 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams, map_fn: M
             fit=raised,
             model_params=raised_params,
             roof_raise_std_m=std_m,
-            roof_raise_held=False,
             left_out=raised_out,
         )
     unconfirmed = (

@@ -20,6 +20,7 @@ from pipeline.selection import Scene, SelectionParams, refine_group
 from pipeline.validation import count_traversals
 from pipeline.vehicle import body_corners
 from pipeline.vehicle_model import (
+    ROOF_RAISE_INDEX,
     ModelParams,
     dominating_covariance,
     largest_stds,
@@ -119,7 +120,7 @@ def test_a_roof_the_boxes_cannot_tell_from_a_lower_camera_stays_held_and_its_std
         scene, tracks = _scene(60.0, drawn)
         candidate = refine_group(tracks, [hypothesis(0, pose), hypothesis(1, pose)], scene)
         joint = joint_fit(candidate, scene, model, 0.01)
-        assert joint.roof_raise_held and abs(joint.fit.shape[-1]) < 1e-9  # joint_fit holds it
+        assert joint.roof_raise_held and abs(joint.fit.shape[ROOF_RAISE_INDEX]) < 1e-9  # joint_fit holds it
         tried = with_roof_raise(joint, scene, model)
         assert tried.roof_raise_held and tried.fit is joint.fit
         assert 0.0 < tried.roof_raise_std_m < model.roof_raise_std_m
@@ -145,7 +146,7 @@ def test_a_roof_fitted_below_half_the_data_sheets_height_is_not_kept(drawn_share
     tried = with_roof_raise(joint_fit(candidate, scene, model, 0.01), scene, model)
     assert tried.roof_raise_held is not kept
     if kept:
-        assert tried.fit.shape[-1] < -3 * tried.roof_raise_std_m
+        assert tried.fit.shape[ROOF_RAISE_INDEX] < -3 * tried.roof_raise_std_m
         # Kept on its cross-validation too: its leave-one-out fits are those final_fit goes on with.
         assert tried.left_out is not None and tried.left_out.full is tried.fit
 

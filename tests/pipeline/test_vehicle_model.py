@@ -27,6 +27,7 @@ from pipeline.vehicle_model import (
     _SHAPE,
     HELD_STD,
     N_PARAMS,
+    ROOF_RAISE_INDEX,
     SHAPE_NAMES,
     TIME_SHIFT,
     ModelParams,
@@ -170,7 +171,7 @@ def test_a_roof_box_above_the_data_sheets_height_is_fitted_and_gives_back_the_po
     """A roof box 0.45 m above the data sheet's height (what a detector boxes, not what the data sheet
     gives): with the roof's raise free it is fitted with the pose, on exact and on noisy boxes; held at the
     data sheet's roof (the default) the same boxes put the camera visibly lower."""
-    index = SHAPE_NAMES.index("roof_raise_m")
+    index = ROOF_RAISE_INDEX
     raised = SHAPE_TRUE.copy()
     raised[index] = 0.45
     trajectory, tracks = _scene(shape=raised)
@@ -196,7 +197,7 @@ def test_a_roof_held_at_the_data_sheets_height_moves_the_camera_as_its_considere
     """A roof 0.1 m above the data sheet's (exact boxes), fitted with the roof held there: the camera moves
     off the truth; the fit's response to the roof raised by 0.1 m, as a consider parameter (the row
     consider_moves adds for roof_raise_std_m), is that move to first order, and it grows with the std."""
-    index = SHAPE_NAMES.index("roof_raise_m")
+    index = ROOF_RAISE_INDEX
     raised = SHAPE_TRUE.copy()
     raised[index] = 0.1
     R0, t0 = _start()
