@@ -1,0 +1,128 @@
+"""bench.bound: its linear algebra, and that its noise models are the simulator's."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from bench.bound import (
+    camera_bounds,
+    edge_noise_covariance,
+    gauss_markov_covariance,
+    largest_stds,
+    posterior_covariance,
+)
+
+
+def _problem(rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    J = rng.normal(size=(40, 3))
+    G = rng.normal(size=(40, 2))
+    A = rng.normal(size=(40, 40))
+    noise = A @ A.T / 40.0 + 0.1 * np.eye(40)
+    prior = np.diag([0.5, 2.0])
+    return J, G, noise, prior
+
+
+def test_integrating_out_a_nuisance_equals_estimating_it_with_its_prior():
+    J, G, noise, prior = _problem(np.random.default_rng(0))
+    # Joint information of [x, n] with n's prior; x's block of its inverse.
+    N_inv = np.linalg.inv(noise)
+    joint = np.block(
+        [[J.T @ N_inv @ J, J.T @ N_inv @ G], [G.T @ N_inv @ J, G.T @ N_inv @ G + np.linalg.inv(prior)]]
+    )
+    expected = np.linalg.inv(joint)[:3, :3]
+    np.testing.assert_allclose(posterior_covariance(J, noise, G, prior), expected, rtol=1e-9, atol=1e-12)
+    # A nuisance only adds uncertainty.
+    without = posterior_covariance(J, noise)
+    assert np.all(np.linalg.eigvalsh(posterior_covariance(J, noise, G, prior) - without) > -1e-12)
+    assert np.trace(posterior_covariance(J, noise, G, prior)) > 1.01 * np.trace(without)
+
+
+def test_the_bound_is_the_scatter_of_the_best_linear_estimate():
+    rng = np.random.default_rng(1)
+    J, G, noise, prior = _problem(rng)
+    total = noise + G @ prior @ G.T
+    W = np.linalg.inv(total)
+    gain = np.linalg.inv(J.T @ W @ J) @ J.T @ W
+    draws = 20_000
+    e = rng.multivariate_normal(np.zeros(40), noise, size=draws)
+    n = rng.multivariate_normal(np.zeros(2), prior, size=draws)
+    x = np.array([0.3, -1.0, 2.0])
+    estimates = (J @ x + n @ G.T + e) @ gain.T
+    np.testing.assert_allclose(estimates.mean(axis=0), x, atol=0.02)
+    bound = posterior_covariance(J, noise, G, prior)
+    np.testing.assert_allclose(np.cov(estimates.T), bound, rtol=0.05, atol=0.02 * np.abs(bound).max())
+
+
+def test_largest_stds_takes_the_worst_direction_of_each_block():
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = np.diag([1e-6, 4e-6, 1e-6])
+    covariance[3:, 3:] = [[0.01, 0.0, 0.0], [0.0, 0.02, 0.015], [0.0, 0.015, 0.02]]
+    position, rotation = largest_stds(covariance)
+    assert position == pytest.approx(math.sqrt(0.035))
+    assert rotation == pytest.approx(math.degrees(2e-3))
+
+
+def test_gnss_covariance_is_the_simulators_bias_and_wander():
+    from sim.v2x import GnssSpec, gauss_markov
+
+    spec = GnssSpec.rtk_fixed()
+    rng = np.random.default_rng(2)
+    t_s = np.sort(rng.uniform(0.0, 200.0, 6))
+    draws = 20_000
+    samples = np.array(
+        [
+            rng.normal(0.0, spec.bias_sigma_m)
+            + gauss_markov(t_s, spec.wander_sigma_m, spec.wander_tau_s, 1, rng)[:, 0]
+            for _ in range(draws)
+        ]
+    )
+    expected = gauss_markov_covariance(t_s, spec.bias_sigma_m, spec.wander_sigma_m, spec.wander_tau_s)
+    np.testing.assert_allclose(np.cov(samples.T), expected, atol=4e-5)
+
+
+def test_edge_noise_covariance_is_the_simulators_detector_noise():
+    from sim.detector import _correlate_along_tracks, _edge_noise
+    from sim.lens import Lens
+    from sim.presets import REAL_DETECTOR_FLOOR
+
+    spec = REAL_DETECTOR_FLOOR
+    lens = Lens(np.eye(3), np.zeros(5), 1920, 1080, math.inf)
+    boxes = np.array(
+        [[100, 100, 140, 130], [110, 100, 260, 220], [300, 300, 330, 320], [500, 400, 700, 600]], float
+    )
+    frames = np.array([0, 1, 3, 0])
+    owner = np.array([0, 0, 0, 1])
+    draws = 20_000
+    rng = np.random.default_rng(3)
+    samples = np.empty((draws, 16))
+    for k in range(draws):
+        z = rng.standard_normal((4, 4)) * spec.box_jitter_px
+        correlated = _correlate_along_tracks(z, owner, frames, spec.jitter_ar1)
+        samples[k] = _edge_noise(boxes, correlated, spec, lens).reshape(-1)
+    expected = edge_noise_covariance(
+        boxes, frames, owner, spec.box_jitter_px, spec.jitter_reference_px, spec.jitter_ar1
+    )
+    np.testing.assert_allclose(np.cov(samples.T), expected, atol=0.06 * expected.max())
+    # Different tracks and edges do not correlate; the same edge of a track does, by rho ** gap.
+    assert expected[0, 12] == 0.0 and expected[0, 1] == 0.0
+    assert expected[0, 8] == pytest.approx(math.sqrt(expected[0, 0] * expected[8, 8]) * spec.jitter_ar1**3)
+
+
+def test_every_unknown_handed_back_raises_the_bound():
+    from sim.simulate import simulate
+
+    sim = simulate("sil-north", 0)
+    known = camera_bounds(sim, "known", "exact")
+    unknown = camera_bounds(sim, "prior", "family")
+    assert [r["camera"] for r in known] == [r["camera"] for r in unknown] == ["north"]
+    a, b = known[0], unknown[0]
+    assert a["frames"] == b["frames"] >= 50 and a["traversals"] == 3
+    # The detector alone fixes the pose to centimetres; the GNSS's bias and wander (4 cm and 6 cm
+    # vertically) set a floor on the camera's height no number of boxes removes.
+    assert float(a["detector_only_position_std_m"]) < 0.5 * float(a["position_std_m"])
+    assert 0.04 < float(a["height_std_m"]) < 0.12
+    assert float(b["position_std_m"]) >= float(a["position_std_m"])
+    assert float(b["rotation_std_deg"]) > float(a["rotation_std_deg"])
