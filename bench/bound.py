@@ -4,8 +4,10 @@ For each camera of a simulated scene this computes the Cramer-Rao bound of the c
 linearised model of the realistic world, with everything an estimator could wish to know handed to it:
 
 - the calibration vehicle's exact body (the simulator's mesh), its true attitude (pitch and roll the CAMs
-  lack), which boxes are its own, the camera's clock, readout, lens and the detector's box convention
-  (with `--convention prior`: the convention unknown, from its prior instead);
+  lack), which boxes are its own, the camera's clock (with `--clock unknown`: its time offset estimated
+  with the pose, and its own bound given), readout, lens and the detector's box convention (with
+  `--convention prior`: the convention unknown, from its prior instead); with `--body family` only the
+  body's type and data-sheet L, W, H are known, its other proportions unknown within the type's ranges;
 - every box of the vehicle's whole silhouette, all four edges informative (the detector's boxes are of the
   visible part, cut by occluders and the image border, which then says nothing of the vehicle);
 - the vehicle's positions known but for the part of the GNSS error no smoothing of the track removes: the
@@ -21,7 +23,7 @@ limit (3 std <= 0.5 m and 0.5 deg by default) no such estimator can pass it with
 uncertainty than its own error has. It says nothing of other traffic's boxes, which are not used.
 
     python -m bench.bound --presets sil-north,slope --seeds 0-4
-    python -m bench.bound --convention prior --json /tmp/bound.json
+    python -m bench.bound --body family --convention prior --clock unknown --json /tmp/bound.json
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ CORE_PRESETS = (
 )
 # The validation gates' defaults (schemas.config): 3 std at most 0.5 m and 0.5 deg.
 GATE_SIGMAS, GATE_POSITION_M, GATE_ROTATION_DEG = 3.0, 0.5, 0.5
-_STEP_RAD, _STEP_M = 1e-6, 1e-5
+_STEP_RAD, _STEP_M, _STEP_S = 1e-6, 1e-5, 1e-4
 
 if __name__ == "__main__":  # before numpy: one BLAS thread per process (see main)
     limit_threads()
@@ -167,6 +169,29 @@ class _View:
         return _View(self.attitude[keep], self.centre[keep], self.vertices, self.R, self.C, self.lens)
 
 
+def time_column(poses: FloatArray, t_s: FloatArray, traversal: NDArray[np.int64], view: _View) -> FloatArray:
+    """d boxes / d (the camera's time offset) (4n,): the boxes of the vehicle's poses (n, 6) [x, y, z, yaw,
+    pitch, roll] at the frames' instants t_s (n,) moved along their rates (central differences in time
+    within each traversal)."""
+    from sim.geometry import attitude_matrices
+
+    rates = np.zeros_like(poses)
+    for k in np.unique(traversal):
+        sel = np.flatnonzero(traversal == k)
+        if len(sel) < 2:
+            continue
+        rates[sel, :3] = np.gradient(poses[sel, :3], t_s[sel], axis=0)
+        rates[sel, 3:] = np.gradient(np.unwrap(poses[sel, 3:], axis=0), t_s[sel], axis=0)
+
+    def boxes(dt: float) -> FloatArray:
+        moved = poses + rates * dt
+        attitude = attitude_matrices(moved[:, 3], moved[:, 4], moved[:, 5])
+        shifted = _View(attitude, moved[:, :3], view.vertices, view.R, view.C, view.lens)
+        return shifted.boxes(np.zeros(3), np.zeros(3))
+
+    return np.asarray(((boxes(_STEP_S) - boxes(-_STEP_S)) / (2.0 * _STEP_S)).reshape(-1), dtype=np.float64)
+
+
 def body_columns(shape: BodyShape, view: _View) -> tuple[FloatArray, FloatArray]:
     """d boxes / d (each drawn proportion of the body but its data-sheet L, W, H) (4n, m) in the view, and
     the proportions' prior variances (m,): uniform within the type's ranges (sim.shapes.TYPE_RANGES), as
@@ -196,7 +221,7 @@ def body_columns(shape: BodyShape, view: _View) -> tuple[FloatArray, FloatArray]
 
 
 def camera_bounds(
-    sim: SimulationResult, convention: str = "known", body: str = "exact"
+    sim: SimulationResult, convention: str = "known", body: str = "exact", clock: str = "known"
 ) -> list[dict[str, object]]:
     """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames (see
     the module docstring)."""
@@ -238,7 +263,7 @@ def camera_bounds(
         )
         boxes = view.boxes(np.zeros(3), np.zeros(3))
         sound = np.all(np.isfinite(boxes), axis=1)
-        frames, boxes, view = frames[sound], boxes[sound], view.frames(sound)
+        frames, boxes, view, poses = frames[sound], boxes[sound], view.frames(sound), poses[sound]
         n = len(frames)
         J = view.jacobian()  # (n, 4, 6)
         traversal = np.array([truth.frames[int(f)].traversal or 0 for f in frames], dtype=np.int64)
@@ -265,7 +290,7 @@ def camera_bounds(
             A = -J[:, :, 3 + axis]  # (n, 4)
             gnss_cov += np.einsum("ia,ij,jb->iajb", A, K, A).reshape(4 * n, 4 * n)
         J_flat = J.reshape(4 * n, 6)
-        detector_only = posterior_covariance(J_flat, noise)
+        detector_only = posterior_covariance(J_flat, noise)  # the pose alone, the clock known
         nuisance: list[FloatArray] = []
         variances: list[FloatArray] = []
         if convention == "prior":
@@ -279,7 +304,11 @@ def camera_bounds(
             variances.append(body_variances)
         G = np.hstack(nuisance) if nuisance else None
         prior = np.diag(np.concatenate(variances)) if variances else None
+        if clock == "unknown":  # the time offset estimated with the pose (flat prior)
+            J_flat = np.column_stack([J_flat, time_column(poses, t_s, traversal, view)])
         covariance = posterior_covariance(J_flat, noise + gnss_cov, G, prior)
+        time_std_ms = math.sqrt(float(covariance[6, 6])) * 1e3 if clock == "unknown" else None
+        covariance = covariance[:6, :6]
         position, rotation = largest_stds(covariance)
         records.append(
             {
@@ -291,6 +320,7 @@ def camera_bounds(
                 "position_std_m": position,
                 "rotation_std_deg": rotation,
                 "height_std_m": math.sqrt(float(covariance[5, 5])),
+                "time_offset_std_ms": time_std_ms,
                 "detector_only_position_std_m": largest_stds(detector_only)[0],
                 "detector_only_rotation_std_deg": largest_stds(detector_only)[1],
                 "passable": GATE_SIGMAS * position <= GATE_POSITION_M
@@ -307,11 +337,11 @@ def _seeds(text: str) -> list[int]:
     return [int(part) for part in text.split(",")]
 
 
-def _job(args: tuple[str, int, str, str]) -> list[dict[str, object]]:
+def _job(args: tuple[str, int, str, str, str]) -> list[dict[str, object]]:
     from sim.simulate import simulate
 
-    preset, seed, convention, body = args
-    return camera_bounds(simulate(preset, seed), convention, body)
+    preset, seed, convention, body, clock = args
+    return camera_bounds(simulate(preset, seed), convention, body, clock)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -320,10 +350,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seeds", default="0-9", help="a range (0-9) or a list (0,3)")
     parser.add_argument("--convention", choices=("known", "prior"), default="known")
     parser.add_argument("--body", choices=("exact", "family"), default="exact")
+    parser.add_argument("--clock", choices=("known", "unknown"), default="known")
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--json", type=Path, help="write the records here")
     args = parser.parse_args(argv)
-    jobs = [(p, s, args.convention, args.body) for p in args.presets.split(",") for s in _seeds(args.seeds)]
+    jobs = [
+        (p, s, args.convention, args.body, args.clock)
+        for p in args.presets.split(",")
+        for s in _seeds(args.seeds)
+    ]
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         records = [record for chunk in pool.map(_job, jobs) for record in chunk]
     for r in records:
@@ -333,6 +368,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"rot {r['rotation_std_deg']:.3f} deg height "
             f"{r['height_std_m']:.3f} m  (detector only {r['detector_only_position_std_m']:.3f} m "
             f"{r['detector_only_rotation_std_deg']:.3f} deg)  "
+            + ("" if r["time_offset_std_ms"] is None else f"clock {r['time_offset_std_ms']:.1f} ms  ")
             + ("passable" if r["passable"] else "NOT passable")
         )
     if records:
@@ -345,9 +381,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"(max {rotation.max():.3f}); "
             f"passable at most {passable} ({100.0 * passable / len(records):.0f} %)"
         )
+        clock_ms = [t for r in records if isinstance(t := r["time_offset_std_ms"], float)]
+        if clock_ms:
+            print(f"time offset std median {np.median(clock_ms):.1f} ms (max {max(clock_ms):.1f})")
     if args.json:
         args.json.write_text(
-            json.dumps({"convention": args.convention, "body": args.body, "records": records}, indent=1)
+            json.dumps(
+                {"convention": args.convention, "body": args.body, "clock": args.clock, "records": records},
+                indent=1,
+            )
         )
     return 0
 

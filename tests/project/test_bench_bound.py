@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from bench.bound import (
+    _View,
     camera_bounds,
     edge_noise_covariance,
     gauss_markov_covariance,
     largest_stds,
     posterior_covariance,
+    time_column,
 )
 
 
@@ -126,3 +128,36 @@ def test_every_unknown_handed_back_raises_the_bound():
     assert 0.04 < float(a["height_std_m"]) < 0.12
     assert float(b["position_std_m"]) >= float(a["position_std_m"])
     assert float(b["rotation_std_deg"]) > float(a["rotation_std_deg"])
+    # The clock estimated with the pose: the pose's bound rises (or holds), the clock's own is milliseconds.
+    clocked = camera_bounds(sim, "known", "exact", "unknown")[0]
+    assert a["time_offset_std_ms"] is None
+    assert 0.1 < float(clocked["time_offset_std_ms"]) < 10.0
+    assert float(clocked["position_std_m"]) >= float(a["position_std_m"]) - 1e-9
+
+
+def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
+    from sim.geometry import attitude_matrices
+    from sim.lens import Lens
+
+    # A 4.5 x 1.8 x 1.5 m box driving along x at 12 m/s past a camera 6 m up, looking along -y and down.
+    t_s = np.arange(30) * 0.1
+    poses = np.zeros((30, 6))
+    poses[:, 0] = -15.0 + 12.0 * t_s
+    corners = np.array([[x, y, z] for x in (-2.25, 2.25) for y in (-0.9, 0.9) for z in (0.0, 1.5)])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # camera z along local +y
+    tilt = math.radians(15.0)
+    R = np.array([[1, 0, 0], [0, math.cos(tilt), -math.sin(tilt)], [0, math.sin(tilt), math.cos(tilt)]]) @ R
+    lens = Lens(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), np.zeros(5), 1920, 1080, math.inf)
+    view = _View(
+        attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5]),
+        poses[:, :3],
+        corners,
+        R,
+        np.array([0.0, -20.0, 6.0]),
+        lens,
+    )
+    column = time_column(poses, t_s, np.zeros(30, dtype=np.int64), view)
+    # The vehicle a little later is the camera a little earlier along -x: d box / dt = -12 d box / d C_x.
+    expected = -12.0 * view.jacobian()[:, :, 3].reshape(-1)
+    np.testing.assert_allclose(column, expected, rtol=1e-4, atol=1e-3)
+    assert np.abs(column).max() > 100.0  # px/s: the test would see a column of zeros
