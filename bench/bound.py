@@ -1,29 +1,33 @@
 """The best std any estimator can claim from the calibration vehicle's boxes and CAMs: a lower bound.
 
-For each camera of a simulated scene this computes the Cramer-Rao bound of the camera pose (6 dof) in the
-linearised model of the realistic world, with everything an estimator could wish to know handed to it:
+For each camera of a simulated scene (the realistic world) this computes the Cramer-Rao bound of the
+camera pose (6 dof), linearised at the true pose, with more handed to the estimator than rsucal has:
 
-- the calibration vehicle's exact body (the simulator's mesh), its true attitude (pitch and roll the CAMs
-  lack), which boxes are its own, the camera's clock (with `--clock unknown`: its time offset estimated
-  with the pose, and its own bound given), readout, lens and the detector's box convention (with
-  `--convention prior`: the convention unknown, from its prior instead); with `--body family` only the
-  body's type and data-sheet L, W, H are known, its other proportions unknown within the type's ranges;
-- every box of the vehicle's whole silhouette, all four edges informative (the detector's boxes are of the
-  visible part, cut by occluders and the image border, which then says nothing of the vehicle);
-- the vehicle's positions known but for the part of the GNSS error no smoothing of the track removes: the
-  run's bias and the correlated wander (sim.v2x.GnssSpec, its first-order Gauss-Markov process with its
-  time constant, vertical sigmas scaled by its vertical factor). The white noise per fix, the multipath
-  jumps and the course-over-ground noise are left out, as if removed.
+- the calibration vehicle's exact body (the simulator's mesh; `--body family`: only its type and data
+  sheet's L, W, H, its other proportions unknown within the type's ranges, `--body-prior-scale` times
+  their std), its true pitch and roll, which the CAMs lack (`--roll-std-deg S`: its roll unknown, one
+  offset per drive-past with that prior std), which boxes are its own;
+- the camera's clock (`--clock unknown`: its time offset estimated with the pose, with its own bound),
+  readout, lens, and the detector's box convention (`--convention offsets`: its four edge offsets unknown,
+  normal as the simulator draws them; `prior`: its scale too);
+- every box of the vehicle's whole silhouette with all four edges informative (the detector's boxes are
+  of the visible part, cut by occluders and the image border, which then say nothing of the vehicle);
+- the vehicle's positions but for the part of the GNSS error no smoothing of the track removes: the run's
+  bias and the correlated wander (sim.v2x.GnssSpec: a first-order Gauss-Markov process, vertical sigmas
+  times its vertical factor). The white noise per fix, the multipath jumps and the course-over-ground
+  noise are left out, as if removed.
 
 What is left is the detector's edge noise (its std grows with the box, AR(1) along the track, as
-sim.detector draws it) and those GNSS errors, integrated out as Gaussian noise. Each simplification
-gives the estimator more than it has, so the bound's std is below what any estimator working from these
-boxes and CAMs can honestly report (to the linearisation at the true pose): where it is above the gate's
-limit (3 std <= 0.5 m and 0.5 deg by default) no such estimator can pass it without claiming less
-uncertainty than its own error has. It says nothing of other traffic's boxes, which are not used.
+sim.detector draws it) and those GNSS errors, integrated out as Gaussian noise. Every choice above gives
+the estimator more than it has, but one: a uniform prior (the body's proportions, the convention's scale)
+enters as the normal of its variance, an approximation either way. So, up to that and the linearisation,
+the bound's std is below what any estimator working from these boxes and CAMs can honestly report: where
+it is above a gate's limit (3 std <= 0.5 m and 0.5 deg by default) no such estimator passes the gate
+without claiming less uncertainty than its own error has. Other traffic's boxes are not in it.
 
     python -m bench.bound --presets sil-north,slope --seeds 0-4
-    python -m bench.bound --body family --convention prior --clock unknown --json /tmp/bound.json
+    python -m bench.bound --convention offsets --clock unknown --json /tmp/bound.json
+    python -m bench.bound --body family --convention prior --clock unknown --roll-std-deg 0.5
 """
 
 from __future__ import annotations
@@ -192,6 +196,24 @@ def time_column(poses: FloatArray, t_s: FloatArray, traversal: NDArray[np.int64]
     return np.asarray(((boxes(_STEP_S) - boxes(-_STEP_S)) / (2.0 * _STEP_S)).reshape(-1), dtype=np.float64)
 
 
+def roll_columns(poses: FloatArray, traversal: NDArray[np.int64], view: _View) -> FloatArray:
+    """d boxes / d (the vehicle's roll, one offset per traversal) (4n, traversals): what the CAMs, which
+    carry no roll, leave open where the road's cross slope under each lane is not known."""
+    from sim.geometry import attitude_matrices
+
+    def boxes(droll: float) -> FloatArray:
+        attitude = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5] + droll)
+        rolled = _View(attitude, poses[:, :3], view.vertices, view.R, view.C, view.lens)
+        return rolled.boxes(np.zeros(3), np.zeros(3))
+
+    d = (boxes(_STEP_RAD) - boxes(-_STEP_RAD)) / (2.0 * _STEP_RAD)  # (n, 4)
+    labels = np.unique(traversal)
+    out = np.zeros((len(poses), 4, len(labels)))
+    for column, k in enumerate(labels):
+        out[traversal == k, :, column] = d[traversal == k]
+    return out.reshape(4 * len(poses), len(labels))
+
+
 def body_columns(shape: BodyShape, view: _View) -> tuple[FloatArray, FloatArray]:
     """d boxes / d (each drawn proportion of the body but its data-sheet L, W, H) (4n, m) in the view, and
     the proportions' prior variances (m,): uniform within the type's ranges (sim.shapes.TYPE_RANGES), as
@@ -221,7 +243,12 @@ def body_columns(shape: BodyShape, view: _View) -> tuple[FloatArray, FloatArray]
 
 
 def camera_bounds(
-    sim: SimulationResult, convention: str = "known", body: str = "exact", clock: str = "known"
+    sim: SimulationResult,
+    convention: str = "known",
+    body: str = "exact",
+    clock: str = "known",
+    body_prior_scale: float = 1.0,
+    roll_std_deg: float = 0.0,
 ) -> list[dict[str, object]]:
     """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames (see
     the module docstring)."""
@@ -293,15 +320,23 @@ def camera_bounds(
         detector_only = posterior_covariance(J_flat, noise)  # the pose alone, the clock known
         nuisance: list[FloatArray] = []
         variances: list[FloatArray] = []
+        if convention in ("offsets", "prior"):
+            # The four edge offsets (normal, as the simulator draws them) and, with "prior", the scale about
+            # the box centre (uniform within 1 +- scale_bias: as a normal of its variance).
+            nuisance.append(np.tile(np.eye(4), (n, 1)))
+            variances.append(np.full(4, detector.edge_bias_px**2))
         if convention == "prior":
-            # Scale about the box centre (uniform within 1 +- scale_bias: its variance) and four edge offsets.
             half = 0.5 * (boxes[:, 2:] - boxes[:, :2])
-            nuisance += [np.column_stack([-half, half]).reshape(4 * n, 1), np.tile(np.eye(4), (n, 1))]
-            variances += [np.array([detector.scale_bias**2 / 3.0] + [detector.edge_bias_px**2] * 4)]
+            nuisance.append(np.column_stack([-half, half]).reshape(4 * n, 1))
+            variances.append(np.array([detector.scale_bias**2 / 3.0]))
         if body == "family":
             columns, body_variances = body_columns(shape, view)
             nuisance.append(columns)
-            variances.append(body_variances)
+            variances.append(body_variances * body_prior_scale**2)
+        if roll_std_deg > 0.0:
+            columns = roll_columns(poses, traversal, view)
+            nuisance.append(columns)
+            variances.append(np.full(columns.shape[1], math.radians(roll_std_deg) ** 2))
         G = np.hstack(nuisance) if nuisance else None
         prior = np.diag(np.concatenate(variances)) if variances else None
         if clock == "unknown":  # the time offset estimated with the pose (flat prior)
@@ -310,6 +345,8 @@ def camera_bounds(
         time_std_ms = math.sqrt(float(covariance[6, 6])) * 1e3 if clock == "unknown" else None
         covariance = covariance[:6, :6]
         position, rotation = largest_stds(covariance)
+        # The worst-known turn's axis in camera axes (z: the optical axis), R = R_true @ Rot(w).
+        turn = view.R @ np.linalg.eigh(covariance[:3, :3])[1][:, -1]
         records.append(
             {
                 "preset": preset,
@@ -321,6 +358,7 @@ def camera_bounds(
                 "rotation_std_deg": rotation,
                 "height_std_m": math.sqrt(float(covariance[5, 5])),
                 "time_offset_std_ms": time_std_ms,
+                "worst_turn_axis_cam": (turn * (1.0 if turn[2] >= 0 else -1.0)).round(3).tolist(),
                 "detector_only_position_std_m": largest_stds(detector_only)[0],
                 "detector_only_rotation_std_deg": largest_stds(detector_only)[1],
                 "passable": GATE_SIGMAS * position <= GATE_POSITION_M
@@ -337,25 +375,37 @@ def _seeds(text: str) -> list[int]:
     return [int(part) for part in text.split(",")]
 
 
-def _job(args: tuple[str, int, str, str, str]) -> list[dict[str, object]]:
+def _job(args: tuple[str, int, str, str, str, float, float]) -> list[dict[str, object]]:
     from sim.simulate import simulate
 
-    preset, seed, convention, body, clock = args
-    return camera_bounds(simulate(preset, seed), convention, body, clock)
+    preset, seed, convention, body, clock, body_prior_scale, roll_std_deg = args
+    return camera_bounds(simulate(preset, seed), convention, body, clock, body_prior_scale, roll_std_deg)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.bound", description=__doc__.split("\n\n")[0])
     parser.add_argument("--presets", default=",".join(CORE_PRESETS))
     parser.add_argument("--seeds", default="0-9", help="a range (0-9) or a list (0,3)")
-    parser.add_argument("--convention", choices=("known", "prior"), default="known")
+    parser.add_argument("--convention", choices=("known", "offsets", "prior"), default="known")
     parser.add_argument("--body", choices=("exact", "family"), default="exact")
     parser.add_argument("--clock", choices=("known", "unknown"), default="known")
+    parser.add_argument(
+        "--body-prior-scale",
+        type=float,
+        default=1.0,
+        help="--body family: the proportions' prior std times this (0.5: a quarter of the variance)",
+    )
+    parser.add_argument(
+        "--roll-std-deg",
+        type=float,
+        default=0.0,
+        help="the vehicle's roll unknown, one offset per drive-past with this prior std (default: known)",
+    )
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--json", type=Path, help="write the records here")
     args = parser.parse_args(argv)
     jobs = [
-        (p, s, args.convention, args.body, args.clock)
+        (p, s, args.convention, args.body, args.clock, args.body_prior_scale, args.roll_std_deg)
         for p in args.presets.split(",")
         for s in _seeds(args.seeds)
     ]
@@ -387,7 +437,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json:
         args.json.write_text(
             json.dumps(
-                {"convention": args.convention, "body": args.body, "clock": args.clock, "records": records},
+                {
+                    "convention": args.convention,
+                    "body": args.body,
+                    "clock": args.clock,
+                    "body_prior_scale": args.body_prior_scale,
+                    "roll_std_deg": args.roll_std_deg,
+                    "records": records,
+                },
                 indent=1,
             )
         )

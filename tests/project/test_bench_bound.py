@@ -14,6 +14,7 @@ from bench.bound import (
     gauss_markov_covariance,
     largest_stds,
     posterior_covariance,
+    roll_columns,
     time_column,
 )
 
@@ -133,6 +134,14 @@ def test_every_unknown_handed_back_raises_the_bound():
     assert a["time_offset_std_ms"] is None
     assert 0.1 < float(clocked["time_offset_std_ms"]) < 10.0
     assert float(clocked["position_std_m"]) >= float(a["position_std_m"]) - 1e-9
+    # Each further unknown raises the rotation's bound: the edge offsets, then the scale; the vehicle's roll.
+    offsets = camera_bounds(sim, "offsets", "exact")[0]
+    scaled = camera_bounds(sim, "prior", "exact")[0]
+    rolled = camera_bounds(sim, "known", "exact", roll_std_deg=0.5)[0]
+    assert (
+        float(a["rotation_std_deg"]) < float(offsets["rotation_std_deg"]) <= float(scaled["rotation_std_deg"])
+    )
+    assert float(rolled["rotation_std_deg"]) > float(a["rotation_std_deg"])
 
 
 def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
@@ -161,3 +170,8 @@ def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
     expected = -12.0 * view.jacobian()[:, :, 3].reshape(-1)
     np.testing.assert_allclose(column, expected, rtol=1e-4, atol=1e-3)
     assert np.abs(column).max() > 100.0  # px/s: the test would see a column of zeros
+    # A roll per drive-past moves only that drive-past's boxes.
+    traversal = np.repeat([3, 7], 15)
+    rolls = roll_columns(poses, traversal, view).reshape(30, 4, 2)
+    assert np.all(rolls[15:, :, 0] == 0.0) and np.all(rolls[:15, :, 1] == 0.0)
+    assert np.abs(rolls[:15, :, 0]).max() > 1.0 and np.abs(rolls[15:, :, 1]).max() > 1.0  # px/rad
