@@ -28,6 +28,7 @@ without claiming less uncertainty than its own error has. Other traffic's boxes 
     python -m bench.bound --presets sil-north,slope --seeds 0-4
     python -m bench.bound --convention offsets --clock unknown --json /tmp/bound.json
     python -m bench.bound --body family --convention prior --clock unknown --roll-std-deg 0.5
+    python -m bench.bound --presets unseen --seeds 0-49   # bench.unseen's scenes
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ from numpy.typing import NDArray  # noqa: E402
 FloatArray = NDArray[np.float64]
 
 if TYPE_CHECKING:
+    from sim.presets import ScenarioConfig
     from sim.shapes import BodyShape
     from sim.simulate import SimulationResult
 
@@ -249,6 +251,7 @@ def camera_bounds(
     clock: str = "known",
     body_prior_scale: float = 1.0,
     roll_std_deg: float = 0.0,
+    config: ScenarioConfig | None = None,
 ) -> list[dict[str, object]]:
     """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames (see
     the module docstring)."""
@@ -263,7 +266,7 @@ def camera_bounds(
             "bench.bound models the realistic world's GNSS and detector, not the first simulator's"
         )
     preset, seed = sim.preset, sim.seed
-    config = resolve_config(preset)
+    config = config if config is not None else resolve_config(preset)
     detector = world_detector(config)
     gnss = GnssSpec.rtk_float() if config.v2x.rtk_float else GnssSpec.rtk_fixed()
     shape = sim.bodies[0]
@@ -376,16 +379,29 @@ def _seeds(text: str) -> list[int]:
 
 
 def _job(args: tuple[str, int, str, str, str, float, float]) -> list[dict[str, object]]:
+    """One scene's records: a preset and seed, or (preset "unseen") bench.unseen's scene of that number."""
     from sim.simulate import simulate
 
     preset, seed, convention, body, clock, body_prior_scale, roll_std_deg = args
-    return camera_bounds(simulate(preset, seed), convention, body, clock, body_prior_scale, roll_std_deg)
+    config = None
+    if preset == "unseen":
+        from bench.unseen import draw_scene
+
+        config = draw_scene(seed)
+    sim = simulate(config if config is not None else preset, seed)
+    return camera_bounds(sim, convention, body, clock, body_prior_scale, roll_std_deg, config)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.bound", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--presets", default=",".join(CORE_PRESETS))
-    parser.add_argument("--seeds", default="0-9", help="a range (0-9) or a list (0,3)")
+    parser.add_argument(
+        "--presets",
+        default=",".join(CORE_PRESETS),
+        help="'unseen': bench.unseen's scenes (numbered by --seeds)",
+    )
+    parser.add_argument(
+        "--seeds", default="0-9", help="a range (0-9) or a list (0,3); with --presets unseen: scene numbers"
+    )
     parser.add_argument("--convention", choices=("known", "offsets", "prior"), default="known")
     parser.add_argument("--body", choices=("exact", "family"), default="exact")
     parser.add_argument("--clock", choices=("known", "unknown"), default="known")
