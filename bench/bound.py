@@ -253,8 +253,8 @@ def camera_bounds(
     roll_std_deg: float = 0.0,
     config: ScenarioConfig | None = None,
 ) -> list[dict[str, object]]:
-    """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames (see
-    the module docstring)."""
+    """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames and did
+    not move (see the module docstring)."""
     from sim.geometry import attitude_matrices
     from sim.lens import Lens
     from sim.presets import world_detector
@@ -273,6 +273,8 @@ def camera_bounds(
     vertices = shape.vertices - np.array([shape.length_m / 2.0, shape.width_m / 2.0, 0.0])
     records: list[dict[str, object]] = []
     for camera in sim.cameras:
+        if camera.moves:  # one true pose per camera here; a knocked camera's frames have two
+            continue
         truth = sim.ground_truth[camera.camera_id]
         scene = sim.scenes[camera.camera_id]
         own = np.flatnonzero(scene.vehicle == 0)
