@@ -148,7 +148,8 @@ def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
     from sim.geometry import attitude_matrices
     from sim.lens import Lens
 
-    # A 4.5 x 1.8 x 1.5 m box driving along x at 12 m/s past a camera 6 m up, looking along -y and down.
+    # A 4.5 x 1.8 x 1.5 m box driving along x at 12 m/s past a camera 6 m up and 20 m aside, looking across
+    # the road (+y), tilted by 15 deg.
     t_s = np.arange(30) * 0.1
     poses = np.zeros((30, 6))
     poses[:, 0] = -15.0 + 12.0 * t_s
