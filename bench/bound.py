@@ -449,6 +449,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"(max {rotation.max():.3f}); "
             f"passable at most {passable} ({100.0 * passable / len(records):.0f} %)"
         )
+        # The accepted-share targets are per preset: the most any estimator can pass of each.
+        shares = {
+            preset: (sum(bool(r["passable"]) for r in group), len(group))
+            for preset in dict.fromkeys(str(r["preset"]) for r in records)
+            for group in [[r for r in records if r["preset"] == preset]]
+        }
+        if len(shares) > 1 and len(shares) <= 20:
+            print(
+                "passable at most, per preset: " + ", ".join(f"{p} {k}/{n}" for p, (k, n) in shares.items())
+            )
         clock_ms = [t for r in records if isinstance(t := r["time_offset_std_ms"], float)]
         if clock_ms:
             print(f"time offset std median {np.median(clock_ms):.1f} ms (max {max(clock_ms):.1f})")
