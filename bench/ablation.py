@@ -33,9 +33,10 @@ from dataclasses import replace
 from typing import Any
 
 from bench.accuracy import beyond_reported, is_false_accept, near_poses
+from bench.common import CORE_PRESETS
 
 PARTS = ("body", "corners", "detector", "gnss", "gnss-height", "gnss-wander")
-CORE = "sil-north,sil-south,sil-west,dense-traffic,occluded,slope,crowned-road,latency,suv,van"
+CORE = ",".join(CORE_PRESETS)
 
 
 def _remove(parts: frozenset[str], gnss_wander: tuple[float, float] | None) -> None:

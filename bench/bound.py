@@ -42,23 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bench.common import limit_threads
+from bench.common import CORE_PRESETS, limit_threads
 
-# The presets of issue 10's accepted-share target.
-CORE_PRESETS = (
-    "sil-north",
-    "sil-south",
-    "sil-west",
-    "dense-traffic",
-    "occluded",
-    "slope",
-    "crowned-road",
-    "latency",
-    "suv",
-    "van",
-)
-# The validation gates' defaults (schemas.config): 3 std at most 0.5 m and 0.5 deg.
-GATE_SIGMAS, GATE_POSITION_M, GATE_ROTATION_DEG = 3.0, 0.5, 0.5
 _STEP_RAD, _STEP_M, _STEP_S = 1e-6, 1e-5, 1e-4
 
 if __name__ == "__main__":  # before numpy: one BLAS thread per process (see main)
@@ -66,6 +51,10 @@ if __name__ == "__main__":  # before numpy: one BLAS thread per process (see mai
 
 import numpy as np  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
+
+from pipeline.camera import rotation_from_rvec  # noqa: E402
+from pipeline.vehicle_model import largest_stds  # noqa: E402
+from schemas.config import GatesConfig  # noqa: E402
 
 FloatArray = NDArray[np.float64]
 
@@ -85,14 +74,6 @@ def posterior_covariance(
     whitened = np.linalg.solve(factor, J)
     information = whitened.T @ whitened
     return np.asarray(np.linalg.inv((information + information.T) / 2.0), dtype=np.float64)
-
-
-def largest_stds(covariance: FloatArray) -> tuple[float, float]:
-    """(m, deg): the largest position and rotation std of a pose covariance (6, 6) [w rad, C m], as the
-    validation gates take them."""
-    rotation = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0))
-    position = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), 0.0))
-    return position, math.degrees(rotation)
 
 
 def gauss_markov_covariance(t_s: FloatArray, bias_sigma: float, sigma: float, tau_s: float) -> FloatArray:
@@ -124,16 +105,6 @@ def edge_noise_covariance(
     return out.reshape(4 * n, 4 * n)
 
 
-def _rotation(w: FloatArray) -> FloatArray:
-    """Rotation matrix of a rotation vector (Rodrigues)."""
-    angle = float(np.linalg.norm(w))
-    if angle == 0.0:
-        return np.eye(3)
-    k = w / angle
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.asarray(np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K), dtype=np.float64)
-
-
 @dataclass(frozen=True)
 class _View:
     """One camera's view of the vehicle at n frames: the body's attitude (n, 3, 3) and footprint centre
@@ -152,7 +123,7 @@ class _View:
         body's vertices or the given ones."""
         body = self.vertices if vertices is None else vertices
         points = np.einsum("nij,kj->nki", self.attitude, body) + self.centre[:, None, :]
-        R = self.R @ _rotation(w)
+        R = self.R @ rotation_from_rvec(w)
         cam = (points.reshape(-1, 3) - (self.C + c)) @ R.T
         pixels, _ = self.lens.project_cam(cam)  # type: ignore[attr-defined]
         px = pixels.reshape(points.shape[0], points.shape[1], 2)
@@ -170,6 +141,19 @@ class _View:
             columns.append((plus - minus) / (2.0 * step))
         return np.stack(columns, axis=-1)
 
+    def at(self, poses: FloatArray) -> _View:
+        """The same body and camera with the vehicle at other footprint-centre poses (n, 6) [x, y, z, yaw,
+        pitch, roll]."""
+        return _View.of(poses, self.vertices, self.R, self.C, self.lens)
+
+    @staticmethod
+    def of(poses: FloatArray, vertices: FloatArray, R: FloatArray, C: FloatArray, lens: object) -> _View:
+        """The view of a body (vertices about its footprint centre) at footprint-centre poses (n, 6)."""
+        from sim.geometry import attitude_matrices
+
+        attitude = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
+        return _View(attitude, poses[:, :3], vertices, R, C, lens)
+
     def frames(self, keep: NDArray[np.bool_]) -> _View:
         """The view at the kept frames only."""
         return _View(self.attitude[keep], self.centre[keep], self.vertices, self.R, self.C, self.lens)
@@ -179,8 +163,6 @@ def time_column(poses: FloatArray, t_s: FloatArray, traversal: NDArray[np.int64]
     """d boxes / d (the camera's time offset) (4n,): the boxes of the vehicle's poses (n, 6) [x, y, z, yaw,
     pitch, roll] at the frames' instants t_s (n,) moved along their rates (central differences in time
     within each traversal)."""
-    from sim.geometry import attitude_matrices
-
     rates = np.zeros_like(poses)
     for k in np.unique(traversal):
         sel = np.flatnonzero(traversal == k)
@@ -190,10 +172,7 @@ def time_column(poses: FloatArray, t_s: FloatArray, traversal: NDArray[np.int64]
         rates[sel, 3:] = np.gradient(np.unwrap(poses[sel, 3:], axis=0), t_s[sel], axis=0)
 
     def boxes(dt: float) -> FloatArray:
-        moved = poses + rates * dt
-        attitude = attitude_matrices(moved[:, 3], moved[:, 4], moved[:, 5])
-        shifted = _View(attitude, moved[:, :3], view.vertices, view.R, view.C, view.lens)
-        return shifted.boxes(np.zeros(3), np.zeros(3))
+        return view.at(poses + rates * dt).boxes(np.zeros(3), np.zeros(3))
 
     return np.asarray(((boxes(_STEP_S) - boxes(-_STEP_S)) / (2.0 * _STEP_S)).reshape(-1), dtype=np.float64)
 
@@ -201,12 +180,9 @@ def time_column(poses: FloatArray, t_s: FloatArray, traversal: NDArray[np.int64]
 def roll_columns(poses: FloatArray, traversal: NDArray[np.int64], view: _View) -> FloatArray:
     """d boxes / d (the vehicle's roll, one offset per traversal) (4n, traversals): what the CAMs, which
     carry no roll, leave open where the road's cross slope under each lane is not known."""
-    from sim.geometry import attitude_matrices
 
     def boxes(droll: float) -> FloatArray:
-        attitude = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5] + droll)
-        rolled = _View(attitude, poses[:, :3], view.vertices, view.R, view.C, view.lens)
-        return rolled.boxes(np.zeros(3), np.zeros(3))
+        return view.at(poses + np.array([0.0, 0.0, 0.0, 0.0, 0.0, droll])).boxes(np.zeros(3), np.zeros(3))
 
     d = (boxes(_STEP_RAD) - boxes(-_STEP_RAD)) / (2.0 * _STEP_RAD)  # (n, 4)
     labels = np.unique(traversal)
@@ -255,7 +231,6 @@ def camera_bounds(
 ) -> list[dict[str, object]]:
     """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames and did
     not move (see the module docstring)."""
-    from sim.geometry import attitude_matrices
     from sim.lens import Lens
     from sim.presets import world_detector
     from sim.simulate import resolve_config
@@ -271,6 +246,7 @@ def camera_bounds(
     gnss = GnssSpec.rtk_float() if config.v2x.rtk_float else GnssSpec.rtk_fixed()
     shape = sim.bodies[0]
     vertices = shape.vertices - np.array([shape.length_m / 2.0, shape.width_m / 2.0, 0.0])
+    gates = GatesConfig()  # the defaults: 3 std within 0.5 m and 0.5 deg
     records: list[dict[str, object]] = []
     for camera in sim.cameras:
         if camera.moves:  # one true pose per camera here; a knocked camera's frames have two
@@ -285,14 +261,8 @@ def camera_bounds(
         frames = scene.frame[rows].astype(np.int64)
         poses = scene.poses[rows]
         R = np.asarray(camera.R_cam_from_local, dtype=np.float64)
-        view = _View(
-            attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5]),
-            poses[:, :3],
-            vertices,
-            R,
-            -R.T @ np.asarray(camera.t_cam_from_local, dtype=np.float64),
-            Lens.from_intrinsics(camera.intrinsics),
-        )
+        C = -R.T @ np.asarray(camera.t_cam_from_local, dtype=np.float64)
+        view = _View.of(poses, vertices, R, C, Lens.from_intrinsics(camera.intrinsics))
         boxes = view.boxes(np.zeros(3), np.zeros(3))
         sound = np.all(np.isfinite(boxes), axis=1)
         frames, boxes, view, poses = frames[sound], boxes[sound], view.frames(sound), poses[sound]
@@ -322,7 +292,8 @@ def camera_bounds(
             A = -J[:, :, 3 + axis]  # (n, 4)
             gnss_cov += np.einsum("ia,ij,jb->iajb", A, K, A).reshape(4 * n, 4 * n)
         J_flat = J.reshape(4 * n, 6)
-        detector_only = posterior_covariance(J_flat, noise)  # the pose alone, the clock known
+        # The pose alone from the detector's noise: the clock, convention and positions known.
+        detector_m, detector_deg = largest_stds(posterior_covariance(J_flat, noise))
         nuisance: list[FloatArray] = []
         variances: list[FloatArray] = []
         if convention in ("offsets", "prior"):
@@ -364,10 +335,10 @@ def camera_bounds(
                 "height_std_m": math.sqrt(float(covariance[5, 5])),
                 "time_offset_std_ms": time_std_ms,
                 "worst_turn_axis_cam": (turn * (1.0 if turn[2] >= 0 else -1.0)).round(3).tolist(),
-                "detector_only_position_std_m": largest_stds(detector_only)[0],
-                "detector_only_rotation_std_deg": largest_stds(detector_only)[1],
-                "passable": GATE_SIGMAS * position <= GATE_POSITION_M
-                and GATE_SIGMAS * rotation <= GATE_ROTATION_DEG,
+                "detector_only_position_std_m": detector_m,
+                "detector_only_rotation_std_deg": detector_deg,
+                "passable": gates.std_sigmas * position <= gates.max_position_std_m
+                and gates.std_sigmas * rotation <= gates.max_rotation_std_deg,
             }
         )
     return records

@@ -18,6 +18,19 @@ if TYPE_CHECKING:
     from pipeline.calibrate import CalibrationInputs
     from sim.simulate import SimulationResult
 
+# The presets of issue 10's accepted-share target (bench.ablation's and bench.bound's default).
+CORE_PRESETS = (
+    "sil-north",
+    "sil-south",
+    "sil-west",
+    "dense-traffic",
+    "occluded",
+    "slope",
+    "crowned-road",
+    "latency",
+    "suv",
+    "van",
+)
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

@@ -12,11 +12,11 @@ from bench.bound import (
     camera_bounds,
     edge_noise_covariance,
     gauss_markov_covariance,
-    largest_stds,
     posterior_covariance,
     roll_columns,
     time_column,
 )
+from pipeline.vehicle_model import largest_stds
 
 
 def _problem(rng: np.random.Generator) -> tuple[np.ndarray, ...]:
@@ -60,6 +60,7 @@ def test_the_bound_is_the_scatter_of_the_best_linear_estimate():
 
 
 def test_largest_stds_takes_the_worst_direction_of_each_block():
+    # The gates' measure, which the bound's "passable" uses (pipeline.vehicle_model.largest_stds).
     covariance = np.zeros((6, 6))
     covariance[:3, :3] = np.diag([1e-6, 4e-6, 1e-6])
     covariance[3:, 3:] = [[0.01, 0.0, 0.0], [0.0, 0.02, 0.015], [0.0, 0.015, 0.02]]
