@@ -220,17 +220,44 @@ def body_columns(shape: BodyShape, view: _View) -> tuple[FloatArray, FloatArray]
     return np.column_stack(columns), np.array(variances)
 
 
-def camera_bounds(
+@dataclass(frozen=True)
+class _Camera:
+    """One camera's part of the linearised problem: its n detected frames of the vehicle, rows 4 i + edge.
+
+    record: the camera's identity and its detector-only bound; J (4n, 6): d boxes / d [w, c]; time (4n,):
+    d boxes / d (its time offset); noise (4n, 4n): the detector's edge noise; gnss (n, 4, 3): d boxes / d
+    the vehicle's GNSS error (east, north, up) at each frame; t_s (n,): the frames' instants (s, on the
+    scene's clock); traversal (n,): the drive-past of each frame; own: its own nuisance columns (4n, k)
+    and their prior variances (k,) (the detector's convention); body: the body's proportions' columns
+    (4n, m) and variances, shared by every camera of a scene; roll (4n, t) and variance: the vehicle's
+    roll per drive-past, columns in the order of `roll_labels`; R: the true camera rotation."""
+
+    record: dict[str, object]
+    J: FloatArray
+    time: FloatArray
+    noise: FloatArray
+    gnss: FloatArray
+    t_s: FloatArray
+    traversal: NDArray[np.int64]
+    own: tuple[FloatArray, FloatArray] | None
+    body: tuple[FloatArray, FloatArray] | None
+    roll: FloatArray | None
+    roll_labels: NDArray[np.int64]
+    roll_variance: float
+    R: FloatArray
+
+
+def _cameras(
     sim: SimulationResult,
-    convention: str = "known",
-    body: str = "exact",
-    clock: str = "known",
-    body_prior_scale: float = 1.0,
-    roll_std_deg: float = 0.0,
-    config: ScenarioConfig | None = None,
-) -> list[dict[str, object]]:
-    """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames and did
-    not move (see the module docstring)."""
+    convention: str,
+    body: str,
+    clock: str,
+    body_prior_scale: float,
+    roll_std_deg: float,
+    config: ScenarioConfig | None,
+) -> tuple[list[_Camera], tuple[float, float, float, float]]:
+    """The scene's cameras' parts (those that saw the vehicle in at least 50 frames and did not move),
+    and the GNSS error's (bias, wander, tau, vertical factor) as the simulator draws them."""
     from sim.lens import Lens
     from sim.presets import world_detector
     from sim.simulate import resolve_config
@@ -240,14 +267,15 @@ def camera_bounds(
         raise ValueError(
             "bench.bound models the realistic world's GNSS and detector, not the first simulator's"
         )
-    preset, seed = sim.preset, sim.seed
-    config = config if config is not None else resolve_config(preset)
+    config = config if config is not None else resolve_config(sim.preset)
     detector = world_detector(config)
     gnss = GnssSpec.rtk_float() if config.v2x.rtk_float else GnssSpec.rtk_fixed()
     shape = sim.bodies[0]
     vertices = shape.vertices - np.array([shape.length_m / 2.0, shape.width_m / 2.0, 0.0])
-    gates = GatesConfig()  # the defaults: 3 std within 0.5 m and 0.5 deg
-    records: list[dict[str, object]] = []
+    origin_ns = min(
+        (frame.stamp_ns for truth in sim.ground_truth.values() for frame in truth.frames), default=0
+    )
+    cameras: list[_Camera] = []
     for camera in sim.cameras:
         if camera.moves:  # one true pose per camera here; a knocked camera's frames have two
             continue
@@ -269,8 +297,8 @@ def camera_bounds(
         n = len(frames)
         J = view.jacobian()  # (n, 4, 6)
         traversal = np.array([truth.frames[int(f)].traversal or 0 for f in frames], dtype=np.int64)
-        t_s = np.array([truth.frames[int(f)].exposure_ns or truth.frames[int(f)].stamp_ns for f in frames])
-        t_s = (t_s - t_s.min()).astype(np.float64) / 1e9
+        stamps = [truth.frames[int(f)].exposure_ns or truth.frames[int(f)].stamp_ns for f in frames]
+        t_s = (np.array(stamps, dtype=np.int64) - origin_ns).astype(np.float64) / 1e9
         noise = edge_noise_covariance(
             boxes,
             frames,
@@ -279,69 +307,145 @@ def camera_bounds(
             detector.jitter_reference_px,
             detector.jitter_ar1,
         )
-        # The GNSS error moves the body as the camera's opposite move does: d box / d error = -J_c.
-        gnss_cov = np.zeros((4 * n, 4 * n))
-        per_axis = (1.0, 1.0, gnss.vertical_factor)
-        for axis in range(3):
-            K = gauss_markov_covariance(
-                t_s,
-                gnss.bias_sigma_m * per_axis[axis],
-                gnss.wander_sigma_m * per_axis[axis],
-                gnss.wander_tau_s,
-            )
-            A = -J[:, :, 3 + axis]  # (n, 4)
-            gnss_cov += np.einsum("ia,ij,jb->iajb", A, K, A).reshape(4 * n, 4 * n)
         J_flat = J.reshape(4 * n, 6)
         # The pose alone from the detector's noise: the clock, convention and positions known.
         detector_m, detector_deg = largest_stds(posterior_covariance(J_flat, noise))
-        nuisance: list[FloatArray] = []
+        columns: list[FloatArray] = []
         variances: list[FloatArray] = []
         if convention in ("offsets", "prior"):
             # The four edge offsets (normal, as the simulator draws them) and, with "prior", the scale about
             # the box centre (uniform within 1 +- scale_bias: as a normal of its variance).
-            nuisance.append(np.tile(np.eye(4), (n, 1)))
+            columns.append(np.tile(np.eye(4), (n, 1)))
             variances.append(np.full(4, detector.edge_bias_px**2))
         if convention == "prior":
             half = 0.5 * (boxes[:, 2:] - boxes[:, :2])
-            nuisance.append(np.column_stack([-half, half]).reshape(4 * n, 1))
+            columns.append(np.column_stack([-half, half]).reshape(4 * n, 1))
             variances.append(np.array([detector.scale_bias**2 / 3.0]))
+        shared_body = None
         if body == "family":
-            columns, body_variances = body_columns(shape, view)
+            body_cols, body_variances = body_columns(shape, view)
+            shared_body = (body_cols, body_variances * body_prior_scale**2)
+        cameras.append(
+            _Camera(
+                record={
+                    "preset": sim.preset,
+                    "seed": sim.seed,
+                    "camera": camera.camera_id,
+                    "frames": n,
+                    "traversals": len(set(traversal.tolist())),
+                    "detector_only_position_std_m": detector_m,
+                    "detector_only_rotation_std_deg": detector_deg,
+                },
+                J=J_flat,
+                time=time_column(poses, t_s, traversal, view) if clock == "unknown" else np.zeros(0),
+                noise=noise,
+                gnss=-J[:, :, 3:6],  # the GNSS error moves the body as the camera's opposite move does
+                t_s=t_s,
+                traversal=traversal,
+                own=(np.hstack(columns), np.concatenate(variances)) if columns else None,
+                body=shared_body,
+                roll=roll_columns(poses, traversal, view) if roll_std_deg > 0.0 else None,
+                roll_labels=np.unique(traversal),
+                roll_variance=math.radians(roll_std_deg) ** 2,
+                R=R,
+            )
+        )
+    spec = (gnss.bias_sigma_m, gnss.wander_sigma_m, gnss.wander_tau_s, gnss.vertical_factor)
+    return cameras, spec
+
+
+def _bound(
+    cameras: Sequence[_Camera], gnss: tuple[float, float, float, float], clock: str
+) -> list[dict[str, object]]:
+    """The cameras' poses bounded together (one camera: on its own): each its own pose, clock and
+    convention; the vehicle's GNSS error, body and roll shared, as the same drive-pass seen by two cameras
+    shares them. One record per camera, its 6 x 6 block of the joint covariance."""
+    sizes = [len(c.t_s) for c in cameras]
+    rows = 4 * np.array(sizes)
+    offsets = np.concatenate([[0], np.cumsum(rows)])
+    N, clocked = int(offsets[-1]), clock == "unknown"
+    per = 7 if clocked else 6
+    J = np.zeros((N, per * len(cameras)))
+    noise = np.zeros((N, N))
+    for k, c in enumerate(cameras):
+        block = slice(int(offsets[k]), int(offsets[k + 1]))
+        J[block, per * k : per * k + 6] = c.J
+        if clocked:
+            J[block, per * k + 6] = c.time
+        noise[block, block] = c.noise
+    # The GNSS's bias and wander at every frame of every camera: one process, as the simulator draws it.
+    bias, wander, tau, vertical = gnss
+    t_s = np.concatenate([c.t_s for c in cameras])
+    A_all = np.concatenate([c.gnss for c in cameras])  # (n, 4, 3)
+    for axis, factor in enumerate((1.0, 1.0, vertical)):
+        K = gauss_markov_covariance(t_s, bias * factor, wander * factor, tau)
+        A = A_all[:, :, axis]
+        noise += np.einsum("ia,ij,jb->iajb", A, K, A).reshape(N, N)
+    nuisance: list[FloatArray] = []
+    variances: list[FloatArray] = []
+    for k, c in enumerate(cameras):
+        if c.own is not None:
+            columns = np.zeros((N, c.own[0].shape[1]))
+            columns[int(offsets[k]) : int(offsets[k + 1])] = c.own[0]
             nuisance.append(columns)
-            variances.append(body_variances * body_prior_scale**2)
-        if roll_std_deg > 0.0:
-            columns = roll_columns(poses, traversal, view)
-            nuisance.append(columns)
-            variances.append(np.full(columns.shape[1], math.radians(roll_std_deg) ** 2))
-        G = np.hstack(nuisance) if nuisance else None
-        prior = np.diag(np.concatenate(variances)) if variances else None
-        if clock == "unknown":  # the time offset estimated with the pose (flat prior)
-            J_flat = np.column_stack([J_flat, time_column(poses, t_s, traversal, view)])
-        covariance = posterior_covariance(J_flat, noise + gnss_cov, G, prior)
-        time_std_ms = math.sqrt(float(covariance[6, 6])) * 1e3 if clock == "unknown" else None
-        covariance = covariance[:6, :6]
-        position, rotation = largest_stds(covariance)
+            variances.append(c.own[1])
+    if cameras[0].body is not None:
+        nuisance.append(np.vstack([c.body[0] for c in cameras if c.body is not None]))
+        variances.append(cameras[0].body[1])
+    if cameras[0].roll is not None:
+        labels = np.unique(np.concatenate([c.roll_labels for c in cameras]))
+        columns = np.zeros((N, len(labels)))
+        for k, c in enumerate(cameras):
+            assert c.roll is not None
+            where = np.searchsorted(labels, c.roll_labels)
+            columns[int(offsets[k]) : int(offsets[k + 1]), where] = c.roll
+        nuisance.append(columns)
+        variances.append(np.full(len(labels), cameras[0].roll_variance))
+    G = np.hstack(nuisance) if nuisance else None
+    prior = np.diag(np.concatenate(variances)) if variances else None
+    covariance = posterior_covariance(J, noise, G, prior)
+    gates = GatesConfig()  # the defaults: 3 std within 0.5 m and 0.5 deg
+    records: list[dict[str, object]] = []
+    for k, c in enumerate(cameras):
+        block = slice(per * k, per * k + 6)
+        own = covariance[block, block]
+        position, rotation = largest_stds(own)
         # The worst-known turn's axis in camera axes (z: the optical axis), R = R_true @ Rot(w).
-        turn = view.R @ np.linalg.eigh(covariance[:3, :3])[1][:, -1]
+        turn = c.R @ np.linalg.eigh(own[:3, :3])[1][:, -1]
+        time_std_ms = math.sqrt(float(covariance[per * k + 6, per * k + 6])) * 1e3 if clocked else None
         records.append(
             {
-                "preset": preset,
-                "seed": seed,
-                "camera": camera.camera_id,
-                "frames": n,
-                "traversals": len(set(traversal.tolist())),
+                **c.record,
                 "position_std_m": position,
                 "rotation_std_deg": rotation,
-                "height_std_m": math.sqrt(float(covariance[5, 5])),
+                "height_std_m": math.sqrt(float(own[5, 5])),
                 "time_offset_std_ms": time_std_ms,
                 "worst_turn_axis_cam": (turn * (1.0 if turn[2] >= 0 else -1.0)).round(3).tolist(),
-                "detector_only_position_std_m": detector_m,
-                "detector_only_rotation_std_deg": detector_deg,
                 "passable": gates.std_sigmas * position <= gates.max_position_std_m
                 and gates.std_sigmas * rotation <= gates.max_rotation_std_deg,
+                "joint_with": [str(o.record["camera"]) for o in cameras if o is not c],
             }
         )
     return records
+
+
+def camera_bounds(
+    sim: SimulationResult,
+    convention: str = "known",
+    body: str = "exact",
+    clock: str = "known",
+    body_prior_scale: float = 1.0,
+    roll_std_deg: float = 0.0,
+    config: ScenarioConfig | None = None,
+    joint: bool = False,
+) -> list[dict[str, object]]:
+    """One record per camera of a realistic simulation that saw the vehicle in at least 50 frames and did
+    not move (see the module docstring); with `joint`, the scene's cameras bounded together, sharing the
+    vehicle's GNSS error, body and roll (what a fit of every camera at once could know)."""
+    cameras, gnss = _cameras(sim, convention, body, clock, body_prior_scale, roll_std_deg, config)
+    if joint and len(cameras) > 1:
+        return _bound(cameras, gnss, clock)
+    return [record for c in cameras for record in _bound([c], gnss, clock)]
 
 
 def _seeds(text: str) -> list[int]:
@@ -351,18 +455,18 @@ def _seeds(text: str) -> list[int]:
     return [int(part) for part in text.split(",")]
 
 
-def _job(args: tuple[str, int, str, str, str, float, float]) -> list[dict[str, object]]:
+def _job(args: tuple[str, int, str, str, str, float, float, bool]) -> list[dict[str, object]]:
     """One scene's records: a preset and seed, or (preset "unseen") bench.unseen's scene of that number."""
     from sim.simulate import simulate
 
-    preset, seed, convention, body, clock, body_prior_scale, roll_std_deg = args
+    preset, seed, convention, body, clock, body_prior_scale, roll_std_deg, joint = args
     config = None
     if preset == "unseen":
         from bench.unseen import draw_scene
 
         config = draw_scene(seed)
     sim = simulate(config if config is not None else preset, seed)
-    return camera_bounds(sim, convention, body, clock, body_prior_scale, roll_std_deg, config)
+    return camera_bounds(sim, convention, body, clock, body_prior_scale, roll_std_deg, config, joint)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -390,11 +494,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=0.0,
         help="the vehicle's roll unknown, one offset per drive-past with this prior std (default: known)",
     )
+    parser.add_argument(
+        "--joint",
+        action="store_true",
+        help="a scene's cameras bounded together: the vehicle's GNSS error, body and roll shared",
+    )
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--json", type=Path, help="write the records here")
     args = parser.parse_args(argv)
     jobs = [
-        (p, s, args.convention, args.body, args.clock, args.body_prior_scale, args.roll_std_deg)
+        (p, s, args.convention, args.body, args.clock, args.body_prior_scale, args.roll_std_deg, args.joint)
         for p in args.presets.split(",")
         for s in _seeds(args.seeds)
     ]
@@ -442,6 +551,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "clock": args.clock,
                     "body_prior_scale": args.body_prior_scale,
                     "roll_std_deg": args.roll_std_deg,
+                    "joint": args.joint,
                     "records": records,
                 },
                 indent=1,

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from bench.bound import (
+    _bound,
+    _Camera,
     _View,
     camera_bounds,
     edge_noise_covariance,
@@ -177,3 +179,71 @@ def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
     rolls = roll_columns(poses, traversal, view).reshape(30, 4, 2)
     assert np.all(rolls[15:, :, 0] == 0.0) and np.all(rolls[:15, :, 1] == 0.0)
     assert np.abs(rolls[:15, :, 0]).max() > 1.0 and np.abs(rolls[15:, :, 1]).max() > 1.0  # px/rad
+
+
+def _drive_past_camera(name: str, side: float, distance_m: float, t0_s: float) -> _Camera:
+    """A camera 6 m up, distance_m from the road's centre on the side `side` (-1: y < 0), looking across
+    it and tilted down by 15 deg, seeing a 4.5 x 1.8 x 1.5 m box drive past twice at 12 m/s from t0_s
+    (scene clock): along +x in the lane at y = -1.75 m, then 20 s later back along -x at y = +1.75 m.
+    Its edge noise white, 1 px."""
+    from sim.geometry import attitude_matrices
+    from sim.lens import Lens
+
+    n = 30
+    runs = []
+    for traversal, (lane_y, direction, start_s) in enumerate(((-1.75, 1.0, 0.0), (1.75, -1.0, 20.0))):
+        pose = np.zeros((n, 6))
+        pose[:, 0] = direction * (-15.0 + 12.0 * np.arange(n) * 0.1)
+        pose[:, 1] = lane_y
+        pose[:, 3] = 0.0 if direction > 0 else math.pi
+        runs.append((pose, t0_s + start_s + np.arange(n) * 0.1, np.full(n, traversal)))
+    poses = np.vstack([r[0] for r in runs])
+    t_s = np.concatenate([r[1] for r in runs])
+    traversal = np.concatenate([r[2] for r in runs]).astype(np.int64)
+    corners = np.array([[x, y, z] for x in (-2.25, 2.25) for y in (-0.9, 0.9) for z in (0.0, 1.5)])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # camera z along local +y
+    if side > 0:  # on the other side, looking along -y
+        R = R @ np.diag([-1.0, -1.0, 1.0])
+    tilt = math.radians(15.0)
+    R = np.array([[1, 0, 0], [0, math.cos(tilt), -math.sin(tilt)], [0, math.sin(tilt), math.cos(tilt)]]) @ R
+    lens = Lens(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), np.zeros(5), 1920, 1080, math.inf)
+    attitude = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
+    view = _View(attitude, poses[:, :3], corners, R, np.array([0.0, side * distance_m, 6.0]), lens)
+    J = view.jacobian()
+    return _Camera(
+        record={"camera": name},
+        J=J.reshape(-1, 6),
+        time=np.zeros(0),
+        noise=np.eye(4 * len(poses)),
+        gnss=-J[:, :, 3:6],
+        t_s=t_s,
+        traversal=traversal,
+        own=None,
+        body=None,
+        roll=None,
+        roll_labels=np.unique(traversal),
+        roll_variance=0.0,
+        R=R,
+    )
+
+
+def test_cameras_bounded_together_share_the_vehicles_gnss_error():
+    near, far = _drive_past_camera("near", -1.0, 15.0, 0.0), _drive_past_camera("far", 1.0, 25.0, 0.0)
+    wander = (0.0, 0.06, 60.0, 2.0)  # no common bias: only the wander, 6 cm (12 cm vertically) over 60 s
+    together = {r["camera"]: r for r in _bound([near, far], wander, "known")}
+    assert together["near"]["joint_with"] == ["far"]
+    for camera in (near, far):
+        alone = _bound([camera], wander, "known")[0]
+        assert alone["joint_with"] == []
+        joint = together[str(camera.record["camera"])]
+        # The other camera, across the road, sees the same two drive-pasts at the same instants: it
+        # measures how far apart the vehicle's GNSS heights in the two lanes wandered, which turns a camera
+        # as much as a roll would: the rotation's bound falls. Sharing can never raise a bound.
+        assert float(joint["rotation_std_deg"]) < 0.9 * float(alone["rotation_std_deg"])
+        assert float(joint["position_std_m"]) <= float(alone["position_std_m"]) * (1 + 1e-9)
+    # Seen an hour apart (far beyond the wander's 60 s) the errors are independent: nothing shared.
+    alone = _bound([near], wander, "known")[0]
+    later = _drive_past_camera("far", 1.0, 25.0, 3600.0)
+    apart = {r["camera"]: r for r in _bound([near, later], wander, "known")}
+    for key in ("position_std_m", "rotation_std_deg", "height_std_m"):
+        assert float(apart["near"][key]) == pytest.approx(float(alone[key]), rel=1e-6)
