@@ -313,8 +313,25 @@ def joint_fit(
     # (vehicle_model.ModelParams.drive_past_heights); the final fit's every part then fits them too.
     fit, model_params = with_drive_past_heights(fit, used, trajectory, camera, vehicle, model_params)
     # Do the boxes show a body other than the cuboid? The template fit's departure from the cuboid, against
-    # its own uncertainty (chi-square, 6 dof).
+    # its own uncertainty (chi-square, 6 dof). A prior centred on a typical vehicle's proportions pulls the
+    # template away from the cuboid by itself, so a departure beyond the limit is confirmed by the template
+    # fitted with its prior centred on the cuboid (ModelParams.typical_body False): the boxes, not the
+    # prior, must reject the cuboid.
     rejection = cuboid_rejection(fit, vehicle)
+    if rejection > model.cuboid_rejection_chi2 and model_params.typical_body:
+        try:
+            centred = fit_vehicle_model(
+                fit.R_cam_from_local,
+                fit.t_cam_from_local,
+                used,
+                trajectory,
+                camera,
+                vehicle,
+                replace(model_params, typical_body=False),
+            )
+            rejection = cuboid_rejection(centred, vehicle)
+        except DegenerateGeometry:
+            rejection = 0.0  # the template without its prior is not fitted: no evidence against the cuboid
     return JointFit(
         fit,
         used,

@@ -111,7 +111,14 @@ class ModelParams:
     # box top the model puts at H that the detector draws higher moves a low camera down by the difference:
     # the raise is held (at the data sheet's roof) in every fit, and final_fit.with_roof_raise fits it
     # again with this prior, keeping it where the boxes show one.
-    shape_std: tuple[float, ...] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4, _HELD)  # SHAPE_NAMES
+    # The template's prior stds about the cuboid (SHAPE_NAMES; with typical_body only the held entries count).
+    shape_std: tuple[float, ...] = (0.3, 0.8, 0.2, 1.2, 1.2, 0.4, _HELD)
+    # Where the template's prior is centred: on a road vehicle's usual proportions for the profile's L, W, H
+    # (typical_shape), with their spread as its std, or (False) on the cuboid with `shape_std`. A prior
+    # centred on the cuboid leaves the template's heights free to trade with the camera's: the lower
+    # rectangle rises, the camera with it (docs/method.md, "What limits it"). Entries of shape_std at or
+    # below HELD_STD stay held either way (the roof's raise; cuboid_params).
+    typical_body: bool = True
     roof_raise_std_m: float = 0.6
     # A fitted raise within max(3 std, this) of 0 stays held at 0, and its std enters the pose's uncertainty
     # as a consider parameter: a roof the data barely fix is a camera height they barely fix (0.05 m: a
@@ -303,8 +310,41 @@ def template_points(shape: FloatArray, vehicle: VehicleProfile) -> FloatArray:
 
 
 def cuboid_shape(vehicle: VehicleProfile) -> FloatArray:
-    """Shape parameters of the profile's cuboid: the start and the prior mean."""
+    """Shape parameters of the profile's cuboid (the start and prior mean without typical_body)."""
     return np.array([0.0, 0.0, 0.0, vehicle.length, 0.0, 0.0, 0.0])
+
+
+def typical_shape(vehicle: VehicleProfile) -> tuple[FloatArray, FloatArray]:
+    """The template's prior for a road vehicle of the profile's L x W x H (SHAPE_NAMES; mean and std, m):
+    what road vehicles' data sheets and photographs show, not any one body. The body reaches its full
+    length and width a few decimetres up (bumpers, sills: 0.35 +- 0.15 m); the wheels stand about a fifth
+    of the length in from each end and a few centimetres in from the sides; a car's roof, at its full
+    height, spans from behind the windscreen's top (about 0.6 of the length from the rear) to above the
+    rear window (0.15 of it), inset by the cabin's tumblehome (0.2 m); the taller the body, the boxier (a
+    van's or a bus's roof runs nearly end to end, 0.87 / 0.03 of the length, inset 0.1 m), by a share
+    rising from 0 at 1.5 m to 1 at 2.0 m of height. The stds are the spread between vehicles of a class:
+    a fit from a few drive-pasts moves the shape within it, and further where its boxes ask for it. The
+    roof's raise: 0 (what the vehicle carries is fitted by with_roof_raise)."""
+    L, H = vehicle.length, vehicle.height
+    boxy = min(max((H - 1.5) / 0.5, 0.0), 1.0)
+    mean = np.array(
+        [0.35, 0.18 * L, 0.08, (0.62 + 0.25 * boxy) * L, (0.15 - 0.12 * boxy) * L, 0.2 - 0.1 * boxy, 0.0]
+    )
+    std = np.array([0.15, 0.05 * L, 0.05, 0.1 * L, 0.12 * L, 0.1, _HELD])
+    return mean, std
+
+
+def shape_prior(params: ModelParams, vehicle: VehicleProfile) -> tuple[FloatArray, FloatArray]:
+    """The template's prior (mean, std) under `params`: typical_shape's, or the cuboid with shape_std;
+    entries of shape_std at or below HELD_STD held at the mean either way (the roof's raise with
+    typical_body: its shape_std entry, as with_roof_raise frees it)."""
+    given = np.asarray(params.shape_std, dtype=np.float64)
+    if not params.typical_body:
+        return cuboid_shape(vehicle), given
+    mean, std = typical_shape(vehicle)
+    std = np.where(given <= _HELD, given, std)
+    std[ROOF_RAISE_INDEX] = given[ROOF_RAISE_INDEX]
+    return mean, std
 
 
 class PoseSampler:
@@ -396,9 +436,10 @@ def fit_vehicle_model(
     R0 = np.asarray(R_cam_from_local, dtype=np.float64)
     C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
     mean = np.zeros(N_PARAMS + heights)
-    mean[_SHAPE] = cuboid_shape(vehicle)
+    mean[_SHAPE] = shape_prior(params, vehicle)[0]
     mean[_READOUT] = params.readout_s
-    model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, _prior_std(params, heights))
+    prior_std = _prior_std(params, heights, vehicle)
+    model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
     # A box whose vehicle the start puts partly behind the camera has no tight box in the model: its clamped
     # projection misses by up to 10^5 px with a Jacobian to match, and even a robust loss lets such rows
     # drag the pose off (an identity switch onto another car while the calibration vehicle had driven
@@ -407,7 +448,7 @@ def fit_vehicle_model(
     behind = model.behind_camera(mean)
     if behind.any():
         data = replace(data, used=data.used & ~behind[:, None])
-        model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, _prior_std(params, heights))
+        model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
     needed = 2 * (N_PARAMS + heights)
     if int(data.used.sum()) < needed:
         raise DegenerateGeometry(
@@ -1306,15 +1347,17 @@ def _model_of(
         vehicle,
         params,
         x,
-        _prior_std(params, heights),
+        _prior_std(params, heights, vehicle),
     )
     model.set_skew(x)
     return model, x
 
 
-def _prior_std(params: ModelParams, heights: int) -> FloatArray:
+def _prior_std(params: ModelParams, heights: int, vehicle: VehicleProfile) -> FloatArray:
     """The prior stds of a parameter vector with `heights` height offsets at its end."""
-    return np.concatenate([params.prior_std(), [params.drive_past_height_std_m] * heights])
+    stds = params.prior_std()
+    stds[_SHAPE] = shape_prior(params, vehicle)[1]
+    return np.concatenate([stds, [params.drive_past_height_std_m] * heights])
 
 
 def _offsets_for(fit: ModelFit, spans_ns: IntArray) -> FloatArray:
@@ -1633,6 +1676,7 @@ def cuboid_params(params: ModelParams) -> ModelParams:
     return replace(
         params,
         shape_std=(_HELD,) * len(SHAPE_NAMES),
+        typical_body=False,
         scale_std=_HELD,
         shift_std_px=_HELD,
         fit_shift=False,

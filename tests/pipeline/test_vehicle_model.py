@@ -48,7 +48,9 @@ from pipeline.vehicle_model import (
     fit_trimmed,
     fit_vehicle_model,
     leave_one_out,
+    shape_prior,
     template_points,
+    typical_shape,
     unbiased_boxes,
     with_drive_past_heights,
 )
@@ -72,6 +74,7 @@ FLAT = ModelParams(
     max_evaluations=300,
     time_shift_std_s=100.0,
     shape_std=(100.0,) * (len(SHAPE_NAMES) - 1) + (HELD_STD,),  # the roof at the data sheet's height
+    typical_body=False,  # shape_std is the prior's (centred on the cuboid; flat, it does not matter where)
     scale_std=100.0,
     shift_std_px=1e4,
     fit_shift=True,
@@ -245,10 +248,12 @@ def test_correlated_noise_is_not_reported_as_independent():
     """Box errors that persist for a second are fewer observations than frames: with the same per-frame
     noise, strongly correlated errors must give a larger reported std than independent ones."""
     stds = {}
+    # The template's prior centred on the cuboid (wide): the stds are the data's, not the prior's.
+    params = ModelParams(typical_body=False)
     for ar in (0.0, 0.95):
         trajectory, tracks = _scene(noise_px=1.0, seed=1, ar=ar)
         R0, t0 = _start(1)
-        fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+        fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
         stds[ar] = (fit.position_std_m, fit.rotation_std_deg)
     assert stds[0.95][0] > 1.5 * stds[0.0][0]
     assert stds[0.95][1] > 1.5 * stds[0.0][1]
@@ -714,7 +719,9 @@ def test_a_body_the_template_cannot_describe_is_covered_by_the_consider_covarian
     off; the consider covariance of 0.1 m per template point covers that error, the sandwich does not."""
     trajectory, tracks = _body_scene(_rounded_body(SHAPE_TRUE, chamfer_m=0.3, mirror_m=0.15))
     R0, t0 = _start()
-    params = ModelParams()
+    # The prior centred on the cuboid leaves the template the most freedom to absorb the misfit (with
+    # typical_body's tighter prior this body's pose lands within 3 of the fit's own std).
+    params = ModelParams(typical_body=False)
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
     error_m, error_deg = _pose_error(fit)
     shape_cov = consider_covariance(fit, tracks, trajectory, CAMERA, VEHICLE, params, 0.1, 0.0)
@@ -790,8 +797,15 @@ def test_the_boxes_of_a_shaped_body_reject_the_cuboid_and_cuboid_boxes_do_not():
         )
         for t in shaped
     ]
-    cuboid_fit = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+    # The prior centred on a typical vehicle pulls the template off the cuboid by itself (measured: 54); the
+    # template with its prior centred on the cuboid, which joint_fit asks to confirm a rejection, does not.
+    centred = replace(ModelParams(), typical_body=False)
+    cuboid_fit = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, centred)
     assert cuboid_rejection(cuboid_fit, VEHICLE) < 30.0
+    typical_fit = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+    assert cuboid_rejection(typical_fit, VEHICLE) > cuboid_rejection(cuboid_fit, VEHICLE)
+    centred_shaped = fit_vehicle_model(R0, t0, shaped, trajectory, CAMERA, VEHICLE, centred)
+    assert cuboid_rejection(centred_shaped, VEHICLE) > 1000.0
     held = fit_vehicle_model(R0, t0, cuboid_tracks, trajectory, CAMERA, VEHICLE, cuboid_params(ModelParams()))
     assert cuboid_rejection(held, VEHICLE) < 1e-6
 
@@ -1021,3 +1035,41 @@ def test_a_readout_held_at_exactly_zero_gets_its_whole_consider_response():
         for fit in (replace(held, readout_s=1e-16), replace(held, readout_s=0.0))
     ]
     np.testing.assert_allclose(moves[1], moves[0], rtol=1e-6, atol=1e-12)
+
+
+@given(
+    st.floats(3.0, 14.0),
+    st.floats(1.5, 2.6),
+    st.floats(1.2, 3.8),
+)
+def test_a_typical_bodys_template_lies_within_its_data_sheets_box(length: float, width: float, height: float):
+    vehicle = VehicleProfile(length=length, width=width, height=height, imu_offset=(1.0, 0.8, 0.3))
+    mean, std = typical_shape(vehicle)
+    points = template_points(mean, vehicle)
+    assert np.all(points >= -1e-9) and np.all(points <= np.array([length, width, height]) + 1e-9)
+    z_low, overhang, inset, front, back, roof_inset, raise_m = mean
+    assert 0.0 < z_low < height / 2 and 0.0 < overhang < length / 2 and 0.0 < inset < width / 4
+    assert back < front and 0.0 < roof_inset < width / 4 and raise_m == 0.0
+    # Every free entry has a prior that allows it to move; the roof's raise is held (with_roof_raise).
+    assert np.all(std[:ROOF_RAISE_INDEX] > 0.01) and std[ROOF_RAISE_INDEX] <= HELD_STD
+    # The taller body is the boxier: its roof runs further towards both ends.
+    taller = VehicleProfile(length=length, width=width, height=height + 0.4, imu_offset=(1.0, 0.8, 0.3))
+    tall_mean, _ = typical_shape(taller)
+    assert tall_mean[3] >= front and tall_mean[4] <= back
+
+
+def test_the_shape_prior_is_the_typical_bodys_unless_asked_for_the_cuboid_and_held_entries_stay_held():
+    mean, std = shape_prior(ModelParams(), VEHICLE)
+    np.testing.assert_array_equal(mean, typical_shape(VEHICLE)[0])
+    np.testing.assert_array_equal(std[:ROOF_RAISE_INDEX], typical_shape(VEHICLE)[1][:ROOF_RAISE_INDEX])
+    centred = ModelParams(typical_body=False)
+    mean, std = shape_prior(centred, VEHICLE)
+    np.testing.assert_array_equal(mean, cuboid_shape(VEHICLE))
+    np.testing.assert_array_equal(std, centred.shape_std)
+    # The roof's raise freed (with_roof_raise) takes shape_std's entry; cuboid_params holds every entry.
+    free = list(ModelParams().shape_std)
+    free[ROOF_RAISE_INDEX] = 0.6
+    assert shape_prior(ModelParams(shape_std=tuple(free)), VEHICLE)[1][ROOF_RAISE_INDEX] == 0.6
+    mean, std = shape_prior(cuboid_params(ModelParams()), VEHICLE)
+    np.testing.assert_array_equal(mean, cuboid_shape(VEHICLE))
+    assert np.all(std <= HELD_STD)
