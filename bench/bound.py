@@ -23,12 +23,17 @@ the estimator more than it has, but one: a uniform prior (the body's proportions
 enters as the normal of its variance, an approximation either way. So, up to that and the linearisation,
 the bound's std is below what any estimator working from these boxes and CAMs can honestly report: where
 it is above a gate's limit (3 std <= 0.5 m and 0.5 deg by default) no such estimator passes the gate
-without claiming less uncertainty than its own error has. Other traffic's boxes are not in it.
+without claiming less uncertainty than its own error has. Other traffic's boxes are not in it. Each camera
+is bounded alone (an estimator that calibrates one camera at a time), or with `--joint` together with the
+scene's other cameras: each its own pose, clock and convention, the vehicle's GNSS error (one process over
+all their frames, on the scene's clock), body and roll shared, as one fit of a junction's cameras would
+share them.
 
     python -m bench.bound --presets sil-north,slope --seeds 0-4
     python -m bench.bound --convention offsets --clock unknown --json /tmp/bound.json
     python -m bench.bound --body family --convention prior --clock unknown --roll-std-deg 0.5
     python -m bench.bound --presets unseen --seeds 0-49   # bench.unseen's scenes
+    python -m bench.bound --presets sil-west --joint      # a junction's cameras bounded together
 """
 
 from __future__ import annotations

@@ -167,12 +167,13 @@ def test_the_reported_uncertainty_covers_a_body_the_template_cannot_describe(
 
 
 def test_a_roof_raise_that_predicts_the_left_out_drive_pasts_no_better_stays_held() -> None:
-    # sil-south seed 4, a hatchback: the final fit's trial fits the roof -0.70 +- 0.14 m off its data sheet's
-    # height, 5 of its std; kept on that alone (session 23) the camera landed 0.83 m off. Fitted without each
-    # drive-past in turn, the raised roof predicts the left-out boxes no better than the held one: it takes
-    # up another of the template's errors, not the body's roof. Held, the pose is 0.07 m off (at the time
-    # of writing).
-    outcome, evaluation, _ = _run("sil-south", 4)
+    # dense-traffic seed 1, a sedan: the final fit's trial fits the roof -0.40 m off its data sheet's height,
+    # beyond 3 of its std; fitted without each drive-past in turn, the raised roof predicts the left-out boxes
+    # no better than the held one (6.1 px against 5.9 px): it takes up another of the template's errors, not
+    # the body's roof. Held, the pose is 0.27 m off (at the time of writing). The case this was found on,
+    # sil-south seed 4 (-0.70 +- 0.14 m; kept on its std alone, session 23, the camera landed 0.83 m off),
+    # no longer tries a raise since the template's prior is centred on a typical vehicle.
+    outcome, evaluation, _ = _run("dense-traffic", 1)
     notes = _stage_notes(outcome, "final fit")
     assert "with the roof held at the data sheet's height" in notes, notes
     raise_m = float(notes.split("a raise of ")[1].split(" m predicted the left-out drive-pasts no better")[0])
