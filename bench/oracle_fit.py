@@ -11,7 +11,8 @@ the pose error is what the model (body template, detector convention) and the ve
 --poses true: the simulator's noise-free poses (with pitch and roll); cam: the poses rsucal would use, from
 the vehicle's CAMs (GNSS errors, no pitch or roll: pitch from the path as the pipeline takes it);
 --true-heights: the CAM poses with the true heights put in (what the GNSS height costs); --hold-z-low: the
-template's lower rectangle held at the road (its height is what trades with the vehicle's); --height-noise
+template's lower rectangle held at the road (its height is what trades with the vehicle's; the template's
+prior then centred on the cuboid); --height-noise
 (with --poses true): the true heights with noise added, the realistic world's vertical GNSS white noise
 (`white`, 3 cm a pose) or wander (`wander`, 6 cm correlated over 60 s: sim.v2x.GnssSpec's RTK fixed
 receiver), drawn from a generator seeded by the scene's seed (what height noise alone does to the pose).
@@ -82,7 +83,8 @@ def fit_errors(
         model = CameraModel.from_intrinsics(camera.intrinsics)
         params = ModelParams()
         if hold_z_low:  # the template's lower rectangle held at the road (1e-9 m: the pipeline's hold)
-            params = replace(params, shape_std=(1e-9, *params.shape_std[1:]))
+            # (a held entry stays at its prior's mean: the cuboid's, 0 m, not a typical body's 0.35 m)
+            params = replace(params, typical_body=False, shape_std=(1e-9, *params.shape_std[1:]))
         fit, _ = fit_trimmed(R, t, tracks, trajectory, model, sim.vehicle, params)
         error = fit.camera_centre - (-R.T @ t)
         records.append(
