@@ -22,6 +22,7 @@ from pipeline.vehicle import body_corners
 from pipeline.vehicle_model import (
     ROOF_RAISE_INDEX,
     ModelParams,
+    cuboid_rejection,
     dominating_covariance,
     largest_stds,
     model_box_error,
@@ -358,15 +359,17 @@ def test_the_final_fit_adds_and_reports_each_drive_pasts_gnss_error_where_it_is_
 
 def test_a_typical_bodys_prior_alone_does_not_make_cuboid_boxes_reject_the_cuboid() -> None:
     """The default prior is centred on a typical vehicle, off the cuboid: on the cuboid's own boxes the
-    template fitted with it departs from the cuboid by the prior's pull, and joint_fit confirms a departure
-    with the prior centred on the cuboid, which the boxes do not reject."""
+    template fitted with it departs from the cuboid by the prior's pull (measured: a chi-square of 50 here,
+    against a limit set at 40 for the test), and joint_fit confirms a departure beyond the limit with the
+    prior centred on the cuboid, which the boxes do not reject; final_fit then keeps the cuboid."""
     scene, tracks = _scene(60.0)
     pose = true_pose()
     candidate = refine_group(tracks, [hypothesis(0, pose), hypothesis(1, pose)], scene)
-    model = ModelParams()
+    model = ModelParams(cuboid_rejection_chi2=40.0)
     joint = joint_fit(candidate, scene, model, 0.01)
     assert joint.model_params.typical_body
-    assert not joint.body_shown and joint.rejection < model.cuboid_rejection_chi2
+    assert cuboid_rejection(joint.fit, VEHICLE) > model.cuboid_rejection_chi2  # the prior's pull alone
+    assert not joint.body_shown and joint.rejection < 1.0  # the confirming fit's: the cuboid's own boxes
     final = final_fit(joint, scene, model, 0.9)
     assert final.body.startswith("the cuboid")
     assert np.linalg.norm(final.fit.camera_centre - np.array([0.0, 0.0, 10.0])) < 1e-3
