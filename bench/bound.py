@@ -67,6 +67,7 @@ if TYPE_CHECKING:
     from sim.presets import ScenarioConfig
     from sim.shapes import BodyShape
     from sim.simulate import SimulationResult
+    from sim.v2x import GnssSpec
 
 
 def posterior_covariance(
@@ -235,7 +236,7 @@ class _Camera:
     scene's clock); traversal (n,): the drive-past of each frame; own: its own nuisance columns (4n, k)
     and their prior variances (k,) (the detector's convention); body: the body's proportions' columns
     (4n, m) and variances, shared by every camera of a scene; roll (4n, t) and variance: the vehicle's
-    roll per drive-past, columns in the order of `roll_labels`; R: the true camera rotation."""
+    roll per drive-past, columns in the order of np.unique(traversal); R: the true camera rotation."""
 
     record: dict[str, object]
     J: FloatArray
@@ -247,7 +248,6 @@ class _Camera:
     own: tuple[FloatArray, FloatArray] | None
     body: tuple[FloatArray, FloatArray] | None
     roll: FloatArray | None
-    roll_labels: NDArray[np.int64]
     roll_variance: float
     R: FloatArray
 
@@ -260,9 +260,9 @@ def _cameras(
     body_prior_scale: float,
     roll_std_deg: float,
     config: ScenarioConfig | None,
-) -> tuple[list[_Camera], tuple[float, float, float, float]]:
+) -> tuple[list[_Camera], GnssSpec]:
     """The scene's cameras' parts (those that saw the vehicle in at least 50 frames and did not move),
-    and the GNSS error's (bias, wander, tau, vertical factor) as the simulator draws them."""
+    and the vehicle's GNSS receiver as the simulator draws its errors."""
     from sim.lens import Lens
     from sim.presets import world_detector
     from sim.simulate import resolve_config
@@ -350,24 +350,18 @@ def _cameras(
                 own=(np.hstack(columns), np.concatenate(variances)) if columns else None,
                 body=shared_body,
                 roll=roll_columns(poses, traversal, view) if roll_std_deg > 0.0 else None,
-                roll_labels=np.unique(traversal),
                 roll_variance=math.radians(roll_std_deg) ** 2,
                 R=R,
             )
         )
-    spec = (gnss.bias_sigma_m, gnss.wander_sigma_m, gnss.wander_tau_s, gnss.vertical_factor)
-    return cameras, spec
+    return cameras, gnss
 
 
-def _bound(
-    cameras: Sequence[_Camera], gnss: tuple[float, float, float, float], clock: str
-) -> list[dict[str, object]]:
+def _bound(cameras: Sequence[_Camera], gnss: GnssSpec, clock: str) -> list[dict[str, object]]:
     """The cameras' poses bounded together (one camera: on its own): each its own pose, clock and
     convention; the vehicle's GNSS error, body and roll shared, as the same drive-pass seen by two cameras
     shares them. One record per camera, its 6 x 6 block of the joint covariance."""
-    sizes = [len(c.t_s) for c in cameras]
-    rows = 4 * np.array(sizes)
-    offsets = np.concatenate([[0], np.cumsum(rows)])
+    offsets = np.concatenate([[0], np.cumsum([4 * len(c.t_s) for c in cameras])])
     N, clocked = int(offsets[-1]), clock == "unknown"
     per = 7 if clocked else 6
     J = np.zeros((N, per * len(cameras)))
@@ -379,11 +373,12 @@ def _bound(
             J[block, per * k + 6] = c.time
         noise[block, block] = c.noise
     # The GNSS's bias and wander at every frame of every camera: one process, as the simulator draws it.
-    bias, wander, tau, vertical = gnss
     t_s = np.concatenate([c.t_s for c in cameras])
     A_all = np.concatenate([c.gnss for c in cameras])  # (n, 4, 3)
-    for axis, factor in enumerate((1.0, 1.0, vertical)):
-        K = gauss_markov_covariance(t_s, bias * factor, wander * factor, tau)
+    for axis, factor in enumerate((1.0, 1.0, gnss.vertical_factor)):
+        K = gauss_markov_covariance(
+            t_s, gnss.bias_sigma_m * factor, gnss.wander_sigma_m * factor, gnss.wander_tau_s
+        )
         A = A_all[:, :, axis]
         noise += np.einsum("ia,ij,jb->iajb", A, K, A).reshape(N, N)
     nuisance: list[FloatArray] = []
@@ -398,11 +393,11 @@ def _bound(
         nuisance.append(np.vstack([c.body[0] for c in cameras if c.body is not None]))
         variances.append(cameras[0].body[1])
     if cameras[0].roll is not None:
-        labels = np.unique(np.concatenate([c.roll_labels for c in cameras]))
+        labels = np.unique(np.concatenate([c.traversal for c in cameras]))
         columns = np.zeros((N, len(labels)))
         for k, c in enumerate(cameras):
             assert c.roll is not None
-            where = np.searchsorted(labels, c.roll_labels)
+            where = np.searchsorted(labels, np.unique(c.traversal))
             columns[int(offsets[k]) : int(offsets[k + 1]), where] = c.roll
         nuisance.append(columns)
         variances.append(np.full(len(labels), cameras[0].roll_variance))

@@ -19,6 +19,7 @@ from bench.bound import (
     time_column,
 )
 from pipeline.vehicle_model import largest_stds
+from sim.v2x import GnssSpec
 
 
 def _problem(rng: np.random.Generator) -> tuple[np.ndarray, ...]:
@@ -147,28 +148,30 @@ def test_every_unknown_handed_back_raises_the_bound():
     assert float(rolled["rotation_std_deg"]) > float(a["rotation_std_deg"])
 
 
-def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
+def _across_road_view(poses: np.ndarray, side: float, distance_m: float) -> _View:
+    """A 4.5 x 1.8 x 1.5 m box at the poses (n, 6), seen by a camera 6 m up, distance_m from the road's
+    centre on the side `side` (-1: y < 0, looking along +y; +1: looking along -y), tilted down by 15 deg,
+    through a 1920 x 1080 lens of f = 1000 px."""
     from sim.geometry import attitude_matrices
     from sim.lens import Lens
 
-    # A 4.5 x 1.8 x 1.5 m box driving along x at 12 m/s past a camera 6 m up and 20 m aside, looking across
-    # the road (+y), tilted by 15 deg.
-    t_s = np.arange(30) * 0.1
-    poses = np.zeros((30, 6))
-    poses[:, 0] = -15.0 + 12.0 * t_s
     corners = np.array([[x, y, z] for x in (-2.25, 2.25) for y in (-0.9, 0.9) for z in (0.0, 1.5)])
     R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # camera z along local +y
+    if side > 0:
+        R = R @ np.diag([-1.0, -1.0, 1.0])
     tilt = math.radians(15.0)
     R = np.array([[1, 0, 0], [0, math.cos(tilt), -math.sin(tilt)], [0, math.sin(tilt), math.cos(tilt)]]) @ R
     lens = Lens(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), np.zeros(5), 1920, 1080, math.inf)
-    view = _View(
-        attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5]),
-        poses[:, :3],
-        corners,
-        R,
-        np.array([0.0, -20.0, 6.0]),
-        lens,
-    )
+    attitude = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
+    return _View(attitude, poses[:, :3], corners, R, np.array([0.0, side * distance_m, 6.0]), lens)
+
+
+def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
+    # The box driving along x at 12 m/s past a camera 20 m aside, looking across the road (+y).
+    t_s = np.arange(30) * 0.1
+    poses = np.zeros((30, 6))
+    poses[:, 0] = -15.0 + 12.0 * t_s
+    view = _across_road_view(poses, -1.0, 20.0)
     column = time_column(poses, t_s, np.zeros(30, dtype=np.int64), view)
     # The vehicle a little later is the camera a little earlier along -x: d box / dt = -12 d box / d C_x.
     expected = -12.0 * view.jacobian()[:, :, 3].reshape(-1)
@@ -182,13 +185,9 @@ def test_a_late_clock_moves_the_boxes_as_the_vehicle_moves():
 
 
 def _drive_past_camera(name: str, side: float, distance_m: float, t0_s: float) -> _Camera:
-    """A camera 6 m up, distance_m from the road's centre on the side `side` (-1: y < 0), looking across
-    it and tilted down by 15 deg, seeing a 4.5 x 1.8 x 1.5 m box drive past twice at 12 m/s from t0_s
-    (scene clock): along +x in the lane at y = -1.75 m, then 20 s later back along -x at y = +1.75 m.
-    Its edge noise white, 1 px."""
-    from sim.geometry import attitude_matrices
-    from sim.lens import Lens
-
+    """The camera of _across_road_view seeing the box drive past twice at 12 m/s from t0_s (scene clock):
+    along +x in the lane at y = -1.75 m, then 20 s later back along -x at y = +1.75 m. Its edge noise
+    white, 1 px."""
     n = 30
     runs = []
     for traversal, (lane_y, direction, start_s) in enumerate(((-1.75, 1.0, 0.0), (1.75, -1.0, 20.0))):
@@ -198,17 +197,7 @@ def _drive_past_camera(name: str, side: float, distance_m: float, t0_s: float) -
         pose[:, 3] = 0.0 if direction > 0 else math.pi
         runs.append((pose, t0_s + start_s + np.arange(n) * 0.1, np.full(n, traversal)))
     poses = np.vstack([r[0] for r in runs])
-    t_s = np.concatenate([r[1] for r in runs])
-    traversal = np.concatenate([r[2] for r in runs]).astype(np.int64)
-    corners = np.array([[x, y, z] for x in (-2.25, 2.25) for y in (-0.9, 0.9) for z in (0.0, 1.5)])
-    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # camera z along local +y
-    if side > 0:  # on the other side, looking along -y
-        R = R @ np.diag([-1.0, -1.0, 1.0])
-    tilt = math.radians(15.0)
-    R = np.array([[1, 0, 0], [0, math.cos(tilt), -math.sin(tilt)], [0, math.sin(tilt), math.cos(tilt)]]) @ R
-    lens = Lens(np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]]), np.zeros(5), 1920, 1080, math.inf)
-    attitude = attitude_matrices(poses[:, 3], poses[:, 4], poses[:, 5])
-    view = _View(attitude, poses[:, :3], corners, R, np.array([0.0, side * distance_m, 6.0]), lens)
+    view = _across_road_view(poses, side, distance_m)
     J = view.jacobian()
     return _Camera(
         record={"camera": name},
@@ -216,20 +205,20 @@ def _drive_past_camera(name: str, side: float, distance_m: float, t0_s: float) -
         time=np.zeros(0),
         noise=np.eye(4 * len(poses)),
         gnss=-J[:, :, 3:6],
-        t_s=t_s,
-        traversal=traversal,
+        t_s=np.concatenate([r[1] for r in runs]),
+        traversal=np.concatenate([r[2] for r in runs]).astype(np.int64),
         own=None,
         body=None,
         roll=None,
-        roll_labels=np.unique(traversal),
         roll_variance=0.0,
-        R=R,
+        R=view.R,
     )
 
 
 def test_cameras_bounded_together_share_the_vehicles_gnss_error():
     near, far = _drive_past_camera("near", -1.0, 15.0, 0.0), _drive_past_camera("far", 1.0, 25.0, 0.0)
-    wander = (0.0, 0.06, 60.0, 2.0)  # no common bias: only the wander, 6 cm (12 cm vertically) over 60 s
+    # No common bias: only the wander, 6 cm (12 cm vertically) over 60 s.
+    wander = GnssSpec(bias_sigma_m=0.0, wander_sigma_m=0.06, wander_tau_s=60.0, vertical_factor=2.0)
     together = {r["camera"]: r for r in _bound([near, far], wander, "known")}
     assert together["near"]["joint_with"] == ["far"]
     for camera in (near, far):
