@@ -414,6 +414,13 @@ def pose_distance(R_a: Rotation, centre_a: Vec3, R_b: Rotation, centre_b: Vec3) 
     return float(np.linalg.norm(centre_a - centre_b)), math.degrees(rotation_angle_rad(R_a, R_b))
 
 
+def pose_difference(R_a: Rotation, centre_a: Vec3, R_b: Rotation, centre_b: Vec3) -> FloatArray:
+    """[w, C] (6,) of pose b relative to pose a, in the convention of every pose covariance (the fit's,
+    schemas.results.Uncertainty's): R_b = R_a expm(-[w]x), a rotation vector in the local frame (rad), and
+    C = centre_b - centre_a (m)."""
+    return np.concatenate([-rvec_from_rotation(R_a.T @ R_b), centre_b - centre_a])
+
+
 def rotation_from_rvec(rvec: FloatArray) -> Rotation:
     """Rodrigues vector (3,) -> rotation matrix (3, 3)."""
     R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))

@@ -29,6 +29,7 @@ from pipeline.arrays import (
 from pipeline.camera import (
     CameraModel,
     camera_centre,
+    pose_difference,
     quaternion_wxyz_from_rotation,
     rotation_angle_rad,
     undistort_pixels,
@@ -39,6 +40,11 @@ from pipeline.ground import GroundPlaneFit
 from pipeline.tracking import touches_border
 from schemas.files import GroundTruth
 from schemas.results import CalibrationResult, CameraPosition, Provenance, ReferenceFrame, Verdict
+
+# A chi-square of 6 dof: its median, and the value it exceeds as rarely (0.27 %) as a normal variable
+# exceeds 3 std (scipy.stats.chi2.median(6), chi2.isf(0.0027, 6)).
+POSE_CHI2_MEDIAN = 5.348
+POSE_CHI2_3SIGMA = 20.06
 
 
 @dataclass(frozen=True, slots=True)
@@ -263,6 +269,10 @@ class Evaluation:
     horizontal_error_m: float | None
     height_error_m: float | None  # signed: result minus truth
     rotation_error_deg: float | None
+    # The pose error's squared length in the result's own reported covariance (6 dof): how honest the
+    # reported uncertainty is. With an honest covariance it follows a chi-square of 6 dof (median 5.35,
+    # above POSE_CHI2_3SIGMA in 0.27 % of results); None without a pose or a covariance.
+    pose_chi2: float | None = None
     notes: tuple[str, ...] = ()
     stamps: Stamps = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     errors: BoxErrors | None = None
@@ -286,6 +296,7 @@ class Evaluation:
             "horizontal_error_m": self.horizontal_error_m,
             "height_error_m": self.height_error_m,
             "rotation_error_deg": self.rotation_error_deg,
+            "pose_chi2": self.pose_chi2,
             "notes": list(self.notes),
         }
 
@@ -342,7 +353,7 @@ def evaluate_against_ground_truth(
 
     errors: BoxErrors | None = None
     summary = DeltaPSummary(None, None, None, None, 0, 0)
-    position_error = horizontal_error = height_error = rotation_error = None
+    position_error = horizontal_error = height_error = rotation_error = pose_chi2 = None
     if result.R is not None and result.t is not None:
         R, t = _in_truth_frame(
             np.asarray(result.R, dtype=np.float64), np.asarray(result.t, dtype=np.float64), result, truth
@@ -352,11 +363,17 @@ def evaluate_against_ground_truth(
         summary = summarize(errors)
         R_truth = np.asarray(truth.R, dtype=np.float64)
         centre_utm = camera_centre(R, t) + np.asarray(truth.origin, dtype=np.float64)
-        error_vec = centre_utm - np.asarray(truth.camera_position_utm, dtype=np.float64)
+        centre_truth = np.asarray(truth.camera_position_utm, dtype=np.float64)
+        error_vec = centre_utm - centre_truth
         position_error = float(np.linalg.norm(error_vec))
         horizontal_error = float(np.linalg.norm(error_vec[:2]))
         height_error = float(error_vec[2])
         rotation_error = math.degrees(rotation_angle_rad(R, R_truth))
+        if result.uncertainty is not None:
+            pose_chi2 = normalised_pose_error(
+                pose_difference(R, centre_utm, R_truth, centre_truth),
+                np.asarray(result.uncertainty.covariance, dtype=np.float64),
+            )
     else:
         notes.append("the result carries no pose (R, t); nothing to score")
 
@@ -379,10 +396,24 @@ def evaluate_against_ground_truth(
         horizontal_error_m=horizontal_error,
         height_error_m=height_error,
         rotation_error_deg=rotation_error,
+        pose_chi2=pose_chi2,
         notes=tuple(notes),
         stamps=stamps,
         errors=errors,
     )
+
+
+def normalised_pose_error(difference: FloatArray, covariance: FloatArray) -> float | None:
+    """d^T S^-1 d of a pose difference [w, C] (6,) (camera.pose_difference) under a pose covariance S (6, 6)
+    in the same convention; None when S is not positive definite (no finite answer)."""
+    d = as_float_array(difference, "6", "pose difference")
+    S = as_float_array(covariance, "6,6", "covariance")
+    try:
+        L = np.linalg.cholesky((S + S.T) / 2.0)
+    except np.linalg.LinAlgError:
+        return None
+    z = np.linalg.solve(L, d)
+    return float(z @ z)
 
 
 def _fmt(value: float | None, spec: str, unit: str) -> str:
@@ -406,6 +437,8 @@ def format_evaluation(evaluation: Evaluation) -> str:
         f"  e        mean / max  {e_pct}   (paper e_m / e_w; the same boxes)",
         f"  position error       {_fmt(ev.position_error_m, '.3f', 'm'):>11}   ({split})",
         f"  rotation error       {_fmt(ev.rotation_error_deg, '.4f', 'deg'):>11}",
+        f"  error / reported std {_fmt(ev.pose_chi2, '.2f', ''):>11}   (the pose error's chi-square in the "
+        f"result's covariance, 6 dof: honest ~{POSE_CHI2_MEDIAN:.2f}, rarely above {POSE_CHI2_3SIGMA:.1f})",
     ]
     rows.extend(f"  note: {note}" for note in ev.notes)
     return "\n".join(rows)

@@ -45,7 +45,7 @@ from scipy.optimize import least_squares, nnls
 
 from pipeline.arrays import BoolArray, Boxes, FloatArray, IntArray, Rotation, Stamps, Vec3
 from pipeline.association import MatchedTrack, Trajectory, select_rows
-from pipeline.camera import CameraModel, camera_centre, rotation_from_ypr, rvec_from_rotation
+from pipeline.camera import CameraModel, camera_centre, pose_difference, rotation_from_ypr
 from pipeline.errors import DegenerateGeometry
 from pipeline.mapping import MapFn
 from pipeline.refinement import (
@@ -868,14 +868,8 @@ def _quick(params: ModelParams, fit: ModelFit) -> ModelParams:
     )
 
 
-def _pose_difference(R_a: Rotation, C_a: Vec3, R_b: Rotation, C_b: Vec3) -> FloatArray:
-    """[w, C] (6,) of pose b relative to pose a, in the convention of ModelFit.covariance
-    (R_b = R_a expm(-[w]x))."""
-    return np.concatenate([-rvec_from_rotation(R_a.T @ R_b), C_b - C_a])
-
-
 def _move_size(difference: FloatArray) -> tuple[float, float]:
-    """(m, deg): how far a pose difference [w, C] (_pose_difference) moves the camera and turns it."""
+    """(m, deg): how far a pose difference [w, C] (camera.pose_difference) moves the camera and turns it."""
     return float(np.linalg.norm(difference[3:])), math.degrees(float(np.linalg.norm(difference[:3])))
 
 
@@ -1098,7 +1092,7 @@ def check_traversals(
         if isinstance(loo, str):
             problems.append(f"without traversal {index + 1}: {loo}")
             continue
-        delta = _pose_difference(
+        delta = pose_difference(
             fit.R_cam_from_local, fit.camera_centre, loo.R_cam_from_local, loo.camera_centre
         )
         deltas.append(delta)
@@ -1186,7 +1180,7 @@ def _halves_disagree(
     early, late = halves
     if isinstance(early, str) or isinstance(late, str):
         return "", None  # a half too weak to fit on its own says nothing about a move
-    difference = _pose_difference(
+    difference = pose_difference(
         early.R_cam_from_local, early.camera_centre, late.R_cam_from_local, late.camera_centre
     )
     chi2 = float(difference @ _inverse(early.covariance + late.covariance) @ difference)

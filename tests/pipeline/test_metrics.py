@@ -13,7 +13,13 @@ from hypothesis import strategies as st
 
 from daemon.cli import main as cli_main
 from pipeline.arrays import FloatArray
-from pipeline.camera import CameraModel, camera_centre, camera_rotation_from_view, project_points
+from pipeline.camera import (
+    CameraModel,
+    camera_centre,
+    camera_rotation_from_view,
+    project_points,
+    rotation_from_rvec,
+)
 from pipeline.errors import InputError, ShapeError
 from pipeline.ground import GroundPlaneFit
 from pipeline.metrics import (
@@ -21,12 +27,13 @@ from pipeline.metrics import (
     delta_p,
     evaluate_against_ground_truth,
     format_evaluation,
+    normalised_pose_error,
     result_from_ground_truth,
 )
 from pipeline.vehicle import body_corners, footprint_corners
 from schemas.common import CameraIntrinsics, VehicleProfile
 from schemas.files import GroundTruth, GroundTruthFrame
-from schemas.results import Verdict
+from schemas.results import Uncertainty, Verdict
 
 F = 1000.0
 INTRINSICS = CameraIntrinsics(width=1280, height=720, fx=F, fy=F, cx=640.0, cy=360.0)
@@ -384,11 +391,65 @@ def test_cli_evaluate_prints_table_and_json(tmp_path: Path, capsys: pytest.Captu
     assert cli_main(["evaluate", "--calib", str(result_path), "--ground-truth", str(truth_path)]) == 0
     table = capsys.readouterr().out
     assert "delta_p" in table and "ground-truth-cam0" in table and "of 20" in table
+    assert "error / reported std" in table
 
     assert (
         cli_main(["evaluate", "--calib", str(result_path), "--ground-truth", str(truth_path), "--json"]) == 0
     )
     data = json.loads(capsys.readouterr().out)
     assert data["boxes_total"] == 20
+    assert "pose_chi2" in data
     assert data["delta_p_max_m"] < 1e-9
     assert data["position_error_m"] == pytest.approx(0.0, abs=1e-9)
+
+
+_SMALL = st.floats(-0.05, 0.05, allow_nan=False)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    w=st.tuples(_SMALL, _SMALL, _SMALL),
+    c=st.tuples(*(st.floats(-2.0, 2.0, allow_nan=False),) * 3),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_the_pose_chi2_is_the_error_in_the_reported_covariance(
+    w: tuple[float, float, float], c: tuple[float, float, float], seed: int
+) -> None:
+    """A result off the truth by a known [w, C] (the covariance's convention: R_truth = R expm(-[w]x), C =
+    truth minus result) with a reported covariance S scores d^T S^-1 d, whatever the frame's origin."""
+    truth = synthetic_truth(n=5)
+    gt = result_from_ground_truth(truth, "rsu-1")
+    R_truth = np.asarray(truth.R)
+    d = np.array([*w, *c])
+    R = R_truth @ rotation_from_rvec(d[:3])
+    centre_local = camera_centre(R_truth, np.asarray(truth.t_local)) - d[3:]
+    origin = np.asarray(ORIGIN) + np.array([55.0, -7.0, 1.0])  # the result's frame about another origin
+    t = -R @ (centre_local + np.asarray(ORIGIN) - origin)
+    factor = np.random.default_rng(seed).normal(size=(6, 6))
+    S = factor @ factor.T + 1e-3 * np.eye(6)
+    result = gt.model_copy(
+        update={
+            "R": tuple(tuple(float(v) for v in row) for row in R),
+            "t": tuple(float(v) for v in t),
+            "frame": gt.frame.model_copy(update={"origin": tuple(float(v) for v in origin)}),
+            "uncertainty": Uncertainty(
+                covariance=tuple(tuple(float(v) for v in row) for row in S),  # type: ignore[arg-type]
+                position_std_m=1.0,
+                rotation_std_deg=1.0,
+            ),
+        }
+    )
+    ev = evaluate_against_ground_truth(result, truth)
+    assert ev.position_error_m == pytest.approx(float(np.linalg.norm(d[3:])), abs=1e-6)
+    assert ev.pose_chi2 == pytest.approx(float(d @ np.linalg.solve(S, d)), rel=1e-5, abs=1e-6)
+
+
+def test_the_pose_chi2_without_a_covariance_or_of_a_singular_one() -> None:
+    truth = synthetic_truth(n=5)
+    gt = result_from_ground_truth(truth, "rsu-1")
+    assert evaluate_against_ground_truth(gt.model_copy(update={"uncertainty": None}), truth).pose_chi2 is None
+    d = np.array([0.0, 0.0, 0.001, 0.1, 0.0, 0.0])
+    assert normalised_pose_error(d, np.eye(6)) == pytest.approx(0.010001)
+    assert normalised_pose_error(d, np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])) is None
+    with pytest.raises(ShapeError, match="covariance"):
+        normalised_pose_error(d, np.eye(5))

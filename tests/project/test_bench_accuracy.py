@@ -1,5 +1,5 @@
 """bench.accuracy's summaries: every std source has a tag in the table, and the coverage line counts the
-poses beyond their stds (the benchmark is how the uncertainty's honesty is measured)."""
+poses beyond their stds and their covariance (the benchmark is how the uncertainty's honesty is measured)."""
 
 from __future__ import annotations
 
@@ -37,5 +37,15 @@ def test_the_coverage_line_counts_every_pose_within_1_m_beyond_3_std() -> None:
     ]
     assert coverage_line(runs) == (
         "uncertainty over the 3 poses within 1 m / 1 deg (accepted or refused): beyond 3 std in position 1, "
-        "in rotation 1, in time offset 1 of 2"
+        "in rotation 1, in time offset 1 of 2; error / covariance: -"
+    )
+
+
+def test_the_chi2_line_counts_the_poses_beyond_their_whole_covariance() -> None:
+    runs: list[dict[str, Any]] = [
+        {**_run(0.05, 0.05, 1.0), "pose_chi2": chi2}
+        for chi2 in (1.0, 4.0, 6.0, 25.0)  # one beyond the 6-dof 3-sigma value (20.06)
+    ] + [{**_run(2.0, 0.05, 0.0), "pose_chi2": 900.0}]  # a wrong pose: not counted
+    assert coverage_line(runs).endswith(
+        "error / covariance (chi-square, 6 dof) median 5.00 (honest 5.35), above 20.1 1 of 4 (honest 0.27 %)"
     )
