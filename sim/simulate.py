@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -454,6 +454,33 @@ def _camera_stamps(
     return np.asarray(stamps, dtype=np.int64), round(latency_s * 1e9)
 
 
+def _course_over_ground(
+    vehicle: SimVehicle,
+    t: FloatArray,
+    ground: GroundSurface,
+    calib_vehicle: VehicleProfile,
+    body_yaw: FloatArray,
+    half_step_s: float = 0.02,
+) -> FloatArray:
+    """The direction (N,) in which the reference point (the receiver's antenna) moves at times t (s): what
+    a receiver's course over ground measures, from the point's own positions half_step_s either side. A
+    body turning about its rear axle moves a point ahead of that axle at asin(d / R) to its heading (d its
+    distance ahead, R its turn radius): a course is not the body's yaw. Where the point barely moves, the
+    body's yaw (`body_yaw`)."""
+    before = np.clip(t - half_step_s, vehicle.t_start, vehicle.t_end)
+    after = np.clip(t + half_step_s, vehicle.t_start, vehicle.t_end)
+    ends = [
+        reference_from_footprint_centre(sample_vehicle(vehicle, when, ground).centre_poses, calib_vehicle)
+        for when in (before, after)
+    ]
+    move = ends[1][:, :2] - ends[0][:, :2]
+    course = np.arctan2(move[:, 1], move[:, 0])
+    moving = np.hypot(move[:, 0], move[:, 1]) > 1e-4
+    # Keep the course on the yaw's branch (the yaw is unwrapped along the path).
+    course = body_yaw + np.angle(np.exp(1j * (course - body_yaw)))
+    return np.asarray(np.where(moving, course, body_yaw), dtype=np.float64)
+
+
 def _cam_broadcasts(
     vehicle: SimVehicle,
     end_s: float,
@@ -474,7 +501,8 @@ def _cam_broadcasts(
     fix_t = np.asarray(rng.uniform(0.0, period) + period * np.arange(math.floor(end_s / period)), np.float64)
     states = sample_vehicle(vehicle, fix_t, ground)
     reference = reference_from_footprint_centre(states.centre_poses, calib_vehicle)
-    track = measure_gnss(fix_t, reference[:, :3], reference[:, 3], states.speed, gnss, rng)
+    course = _course_over_ground(vehicle, fix_t, ground, calib_vehicle, reference[:, 3])
+    track = measure_gnss(fix_t, reference[:, :3], course, states.speed, gnss, rng)
     sent = cam_generation(track.t_s, track.position, track.yaw, track.speed_mps, CamSpec())
     east = track.position[sent, 0] + origin.x
     north = track.position[sent, 1] + origin.y
@@ -546,13 +574,20 @@ def simulate(
     )
     vehicles = [traffic.calibration, *traffic.others]
     shapes = _traffic_bodies(vehicles, calib_shape, config.ideal, _real_rng(seed, config.name, 1))
+    if not config.ideal:
+        # Each body turns about its own rear axle (its drawn wheels'), not about its centre.
+        vehicles = [
+            replace(vehicle, rear_axle_m=float(shape.wheel_contacts[0, 0]))
+            for vehicle, shape in zip(vehicles, shapes, strict=True)
+        ]
+    calibration = vehicles[0]
     bodies = tuple(_centred(shape) for shape in shapes)
     # Camera clock at t = 0: the preset's start plus a seeded offset (< 3 h, ms resolution).
     start_ns = config.start_ns + int(rng["clock"].integers(0, 3 * 3600 * 1000)) * 1_000_000
 
     # --- the vehicle's own pose reports (its IMU, 50 Hz: the toolbox's poses.yaml)
     pose_t = _pose_instants(traffic.end_s, config.pose, rng["pose"])
-    states = sample_vehicle(traffic.calibration, pose_t, ground)
+    states = sample_vehicle(calibration, pose_t, ground)
     true_local, true_speed = reference_from_footprint_centre(states.centre_poses, calib_vehicle), states.speed
     reported, reported_speed = _reported_poses(true_local, true_speed, pose_t, config.pose, rng["pose"])
     true_stamps = start_ns + np.round(pose_t * 1e9).astype(np.int64)
@@ -573,7 +608,7 @@ def simulate(
     v2x_mode = world_v2x_mode(config)
     if v2x_mode == "cam":
         v2x = _cam_broadcasts(
-            traffic.calibration,
+            calibration,
             traffic.end_s,
             ground,
             calib_vehicle,

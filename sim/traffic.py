@@ -119,6 +119,10 @@ class SimVehicle:
     legs: tuple[Leg, ...]
     route: str  # arm and lane in > arm and lane out, e.g. "W1>E1"; "calibration" for the calibration vehicle
     is_calibration: bool = False
+    # The rear axle's distance from the body's rear end (m): its footprint centre follows the path and the
+    # body turns about the rear axle, as wheels that roll make it (Path.towed_yaw_at). None: the body's yaw
+    # is the path's tangent at its centre (the first simulator's kinematics).
+    rear_axle_m: float | None = None
 
     @property
     def t_start(self) -> float:
@@ -154,6 +158,8 @@ def sample_vehicle(vehicle: SimVehicle, t: FloatArray, ground: GroundSurface) ->
             continue
         s, v = leg.motion.state_at(t[rows])
         xy[rows], yaw[rows] = leg.path.at(s)
+        if vehicle.rear_axle_m is not None:
+            yaw[rows] = leg.path.towed_yaw_at(s, 0.5 * vehicle.length - vehicle.rear_axle_m)
         speed[rows] = v
         if leg.traversal is not None:
             traversal[rows] = leg.traversal

@@ -13,11 +13,13 @@ step up to level footways and verges; the junction area is flattened and the arm
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 from sim.errors import SimulationError
 from sim.geometry import FloatArray, IntArray
@@ -338,6 +340,12 @@ class Path:
             xy = xy + beyond[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
         return xy, yaw
 
+    def towed_yaw_at(self, s_query: FloatArray, lag_m: float) -> FloatArray:
+        """Yaw (N,) at arc lengths (N,) of a rigid body whose point on this path (its footprint centre) is
+        `lag_m` ahead of the point that moves along the body's axis: its rear axle, for wheels roll and do
+        not slide sideways. See `_towed_yaw`; beyond the ends, the end values."""
+        return np.asarray(np.interp(s_query, self.s, _towed_yaw(self, lag_m)), dtype=np.float64)
+
     def offset(self, lateral_m: float) -> Path:
         """Parallel path `lateral_m` to the left (negative: right) of this one."""
         return Path.from_samples(self.xy + lateral_m * _left_normal(self.yaw), self.yaw)
@@ -373,6 +381,35 @@ class Path:
         # w[i] = min_{j >= i} (limit[j] + budget[j] - budget[i]): reversed running minimum.
         v2 = np.minimum.accumulate((v2_limit + budget)[::-1])[::-1] - budget
         return np.asarray(np.sqrt(np.maximum(v2, 0.0)), dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=2048)
+def _towed_yaw(path: Path, lag_m: float) -> FloatArray:
+    """The towed body's yaw (M,) at the path's samples (Path.towed_yaw_at). The rear axle at distance a =
+    `lag_m` behind the path point c moves along the body's heading psi: its sideways speed, that of c less
+    a psi', is 0, so a dpsi/ds = sin(yaw_path - psi), with psi = the path's yaw at s = 0 (a straight
+    start). In a steady turn of radius R the body lags the tangent by asin(a / R) (5.7 deg for a = 1.5 m,
+    R = 15 m: the footprint centre of a turning car moves at that angle to its axis), on a straight it
+    settles back within a few a. Solved on the uniform arc-length grid by the exact discrete low-pass of
+    the linear part (a psi' + psi = yaw_path, trapezoid input), iterated on the small remainder
+    x - sin x (x = yaw_path - psi) until it no longer moves the yaw (5 rounds reach 1e-12 rad)."""
+    if not lag_m > 0.0:
+        raise SimulationError("rear_axle_m", f"must lie behind the body's centre (lag {lag_m} m)")
+    yaw = path.yaw
+    if len(yaw) < 2:
+        return yaw.copy()
+    step = float(path.s[1] - path.s[0])
+    alpha = 1.0 - math.exp(-step / lag_m)
+    b, a = [alpha / 2.0, alpha / 2.0], [1.0, alpha - 1.0]
+    psi = yaw.copy()
+    for _ in range(8):
+        drive = yaw - ((yaw - psi) - np.sin(yaw - psi))
+        updated = yaw[0] + lfilter(b, a, drive - drive[0])
+        done = float(np.max(np.abs(updated - psi))) < 1e-12
+        psi = updated
+        if done:
+            break
+    return np.asarray(psi, dtype=np.float64)
 
 
 def straight_samples(start: FloatArray, yaw: float, length: float) -> tuple[FloatArray, FloatArray]:

@@ -72,12 +72,13 @@ def _assert_right_or_refused(outcome: CalibrationOutcome, evaluation: Evaluation
         assert evaluation.rotation_error_deg <= 3.0 * result.uncertainty.rotation_std_deg
 
 
-@pytest.mark.parametrize(("preset", "seed"), [("occluded", 2), ("slope", 4)])
+@pytest.mark.parametrize(("preset", "seed"), [("occluded", 2), ("slope", 3)])
 def test_an_unknown_latency_is_found_through_the_grouping_and_estimated(preset: str, seed: int) -> None:
-    # On the assumed clock (0 ms against a true -169 ms for slope seed 4, of the middle row) opposite
-    # drive-pasts' hypotheses lie metres apart and no group forms (session 4: "no two hypotheses agree").
-    # The clock scan finds a clock where they agree, the final fit estimates the offset from there (slope
-    # seed 4 at the time of writing: 5.9 ms off).
+    # On the assumed clock (0 ms; the camera's latency, drawn by the simulator, is not told) opposite
+    # drive-pasts' hypotheses lie metres apart and no group forms (session 4: "no two hypotheses
+    # agree"). The clock scan finds a clock where they agree, the final fit estimates the offset from
+    # there (at the time of writing: 4.8 and 5.5 ms off). Slope seed 4, the case before session 27,
+    # now groups on the assumed clock: its vehicle's course is no longer its yaw in the simulator.
     outcome, evaluation, true_offset_ms = _run(preset, seed)
     assert "the assumed clock grouped no two drive-pasts" in _stage_notes(outcome, "clock scan")
     offset_ns = outcome.result.time_offset_ns
@@ -135,12 +136,12 @@ def test_a_refusal_on_precision_alone_does_not_search_the_clock_again() -> None:
 
 
 def test_after_a_refusal_the_scanned_clocks_refusal_on_precision_alone_is_the_result() -> None:
-    # slope seed 0: on the assumed clock (0; the latency is about 150 ms) one drive-past's tracks group and
-    # their pose, 54 m off, is refused ("traversals = 1 < 2"). The clock scan after that refusal finds the
-    # drive-pasts agreeing 150 ms away, where the pose is refused on its stds alone (measured in
-    # bench.accuracy: 0.35 m off at a std of 0.20 m, the clock within 1 ms). That is the refusal the
-    # result gives: its drive-pasts agree, which the assumed clock's refusal could not say.
-    outcome, evaluation, true_ms = _run("slope", 0)
+    # latency seed 5 (since session 27; slope seed 0 before the simulator's courses): on the assumed clock
+    # (0; the camera's latency is 250 ms) a pose is found and refused. The clock scan after that refusal
+    # finds the drive-pasts agreeing about 250 ms away, where the pose is refused on its stds alone (at the
+    # time of writing 0.16 m off, the clock within 4 ms). That is the refusal the result gives: its
+    # drive-pasts agree, which the assumed clock's refusal could not say.
+    outcome, evaluation, true_ms = _run("latency", 5)
     assert "the assumed clock's pose was refused" in _stage_notes(outcome, "clock scan")
     assert outcome.result.verdict.status == "refused" and outcome.imprecise
     assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.5
@@ -167,17 +168,19 @@ def test_the_reported_uncertainty_covers_a_body_the_template_cannot_describe(
 
 
 def test_a_roof_raise_that_predicts_the_left_out_drive_pasts_no_better_stays_held() -> None:
-    # dense-traffic seed 1, a sedan: the final fit's trial fits the roof -0.40 m off its data sheet's height,
-    # beyond 3 of its std; fitted without each drive-past in turn, the raised roof predicts the left-out boxes
-    # no better than the held one (6.1 px against 5.9 px): it takes up another of the template's errors, not
-    # the body's roof. Held, the pose is 0.27 m off (at the time of writing). The case this was found on,
-    # sil-south seed 4 (-0.70 +- 0.14 m; kept on its std alone, session 23, the camera landed 0.83 m off),
-    # no longer tries a raise since the template's prior is centred on a typical vehicle.
-    outcome, evaluation, _ = _run("dense-traffic", 1)
+    # latency seed 9, a sedan that carries a roof box: the final fit's trial fits the roof +0.34 m above
+    # its data sheet's height, beyond 3 of its std; fitted without each drive-past in turn, the raised roof
+    # predicts the left-out boxes no better than the held one, so it stays held (a raise is kept only where
+    # the drive-pasts confirm it: on its std alone a raise that took up another of the template's errors
+    # landed the camera 0.83 m off, sil-south seed 4 in session 23). Here the raise was real and holding it
+    # costs precision, not correctness: the pose is 0.16 m off and refused on its stds (at the time of
+    # writing). Before the simulator's courses (session 27) this was dense-traffic seed 1, a sedan without
+    # a roof box fitted -0.40 m.
+    outcome, evaluation, _ = _run("latency", 9)
     notes = _stage_notes(outcome, "final fit")
     assert "with the roof held at the data sheet's height" in notes, notes
     raise_m = float(notes.split("a raise of ")[1].split(" m predicted the left-out drive-pasts no better")[0])
-    assert raise_m < -0.3
+    assert abs(raise_m) > 0.3
     assert evaluation.position_error_m is not None and evaluation.position_error_m < 0.5
     _assert_right_or_refused(outcome, evaluation)
 

@@ -301,3 +301,35 @@ def test_the_ideal_world_reproduces_the_first_simulator(scene: tuple[str, int, s
     assert float(boxes.sum()) == pytest.approx(coord_sum, rel=1e-12)
     assert sum(m.heading_deg for m in result.v2x) == pytest.approx(heading_sum, abs=1e-3)
     assert result.ground_truth[camera].latency_ns == 0 and result.ground_truth[camera].world == "ideal"
+
+
+def test_a_cam_heading_is_the_antennas_course_not_the_bodys_yaw(north: SimulationResult) -> None:
+    """A receiver's course is the direction its antenna moves. The body turns about its rear axle, so in a
+    turn an antenna ahead of that axle moves at an angle to the body's axis: the CAM headings follow the
+    reference point's own motion (within the course noise), and not the body's yaw. Both directions are
+    taken from the true 50 Hz track (the motion as the reference point's step between neighbouring poses)."""
+    from sim.geo import GeoFrame
+
+    truth = north.ground_truth["north"]
+    stamps = np.array([m.stamp_ns for m in north.v2x]) - truth.clock_offset_ns
+    xy, yaw = north.true_poses[:, :2], np.unwrap(north.true_poses[:, 3])
+    step = xy[2:] - xy[:-2]
+    moving = np.hypot(*step.T) > 0.05  # 1.25 m/s over the two 20 ms steps
+    motion = np.unwrap(np.arctan2(step[:, 1], step[:, 0]))
+    t_mid = north.true_stamps[1:-1].astype(np.float64)
+    keep = moving[np.clip(np.searchsorted(t_mid, stamps), 0, len(t_mid) - 1)]
+    at = stamps.astype(np.float64)
+    body = np.interp(at, north.true_stamps.astype(np.float64), yaw)
+    course = np.interp(at, t_mid[moving], motion[moving])
+    east = np.interp(at, north.true_stamps.astype(np.float64), xy[:, 0]) + north.origin.x
+    north_m = np.interp(at, north.true_stamps.astype(np.float64), xy[:, 1]) + north.origin.y
+    geo = GeoFrame(north.origin.crs)
+    sent = np.array([m.heading_deg for m in north.v2x])
+
+    def off(yaw_rad: np.ndarray) -> np.ndarray:
+        return np.abs((sent - geo.true_heading_deg(east, north_m, yaw_rad) + 180.0) % 360.0 - 180.0)
+
+    turning = keep & (np.abs(np.degrees(course - body)) > 1.0)
+    assert turning.sum() >= 10  # the scene's turns
+    assert float(np.median(off(course)[turning])) < 0.5
+    assert float(np.median(off(body)[turning])) > 1.0

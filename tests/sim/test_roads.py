@@ -335,3 +335,37 @@ def test_bad_ground_specs_are_refused_by_name(spec: GroundSpec, field: str) -> N
     with pytest.raises(SimulationError) as err:
         ground(STRAIGHT, spec)
     assert err.value.source == field
+
+
+@settings(max_examples=30, deadline=None)
+@given(radius=st.floats(6.0, 60.0), lag=st.floats(0.5, 3.0), turn_deg=st.floats(30.0, 180.0))
+def test_a_body_turns_about_its_rear_axle(radius: float, lag: float, turn_deg: float) -> None:
+    """A body whose centre follows a path (30 m straight, an arc, 40 m straight) and whose rear axle lies
+    `lag` behind it: the axle moves along the body's axis everywhere (its wheels do not slide sideways),
+    on a long enough arc the body lags the path's tangent by asin(lag / R), and it is back on the tangent
+    at the end of the last straight."""
+    from sim.world import Path, arc_samples, straight_samples
+
+    xy1, yaw1 = straight_samples(np.array([0.0, 0.0]), 0.3, 30.0)
+    xy2, yaw2 = arc_samples(xy1[-1], 0.3, radius, math.radians(turn_deg))
+    xy3, yaw3 = straight_samples(xy2[-1], float(yaw2[-1]), 40.0)
+    path = Path.from_samples(
+        np.concatenate([xy1, xy2[1:], xy3[1:]]), np.concatenate([yaw1, yaw2[1:], yaw3[1:]])
+    )
+    # On the path's own samples (0.25 m apart), the axle's move between the neighbouring ones.
+    s = path.s
+    centre, tangent = path.at(s)
+    body = path.towed_yaw_at(s, lag)
+    axle = centre - lag * np.column_stack([np.cos(body), np.sin(body)])
+    move = axle[2:] - axle[:-2]
+    heading = np.arctan2(move[:, 1], move[:, 0])
+    arc_length = radius * math.radians(turn_deg)
+    clear = (np.abs(s[1:-1] - 30.0) > 0.6) & (np.abs(s[1:-1] - 30.0 - arc_length) > 0.6)  # curvature steps
+    assert np.max(np.abs(np.angle(np.exp(1j * (heading - body[1:-1]))))[clear]) < math.radians(0.2)
+    arc_end = np.searchsorted(s, 30.0 + arc_length)
+    if arc_length > 8.0 * lag:
+        steady = math.asin(lag / radius)
+        assert float(tangent[arc_end - 1] - body[arc_end - 1]) == pytest.approx(steady, abs=math.radians(0.1))
+    assert abs(float(tangent[-1] - body[-1])) < math.radians(0.05)  # 40 m is at least 13 lags
+    with pytest.raises(SimulationError, match="rear_axle_m"):
+        path.towed_yaw_at(s, 0.0)
