@@ -392,7 +392,8 @@ def _towed_yaw(path: Path, lag_m: float) -> FloatArray:
     R = 15 m: the footprint centre of a turning car moves at that angle to its axis), on a straight it
     settles back within a few a. Solved on the uniform arc-length grid by the exact discrete low-pass of
     the linear part (a psi' + psi = yaw_path, trapezoid input), iterated on the small remainder
-    x - sin x (x = yaw_path - psi) until it no longer moves the yaw (5 rounds reach 1e-12 rad)."""
+    x - sin x (x = yaw_path - psi) until a round moves the yaw by less than 1e-12 rad, 8 rounds at most
+    (measured on a 180 deg arc: 6 rounds for a / R = 0.12; at a / R = 0.5 the 8th still moves it 2e-8 rad)."""
     if not lag_m > 0.0:
         raise SimulationError("rear_axle_m", f"must lie behind the body's centre (lag {lag_m} m)")
     yaw = path.yaw
