@@ -2,7 +2,7 @@
 against the ground truth, beside the paper's figures and our targets. Not part of the test suite.
 
     python -m bench.accuracy [--seeds 10] [--presets a,b,...] [--ideal] [--readout MS] [--latency MS]
-                             [--jobs 2] [--json out.json]
+                             [--routes-times K] [--jobs 2] [--json out.json]
 
 The world is the simulator's real one (shaped bodies, a biased detector, unknown latency, rolling shutters,
 CAM V2X) unless `--ideal` asks for the first simulator's world (cuboid boxes, no latency, global shutters,
@@ -729,8 +729,26 @@ def _run_all(
     ideal: bool,
     readout_s: float | None = None,
     latency_s: float | None = None,
+    routes_times: int = 1,
 ) -> list[Run]:
-    return run_tasks([(p, s, ideal, readout_s, latency_s) for p in names for s in seeds], jobs)
+    presets: list[str | ScenarioConfig] = [repeated_routes(p, routes_times) for p in names]
+    return run_tasks([(p, s, ideal, readout_s, latency_s) for p in presets for s in seeds], jobs)
+
+
+def repeated_routes(preset: str, times: int) -> str | ScenarioConfig:
+    """The preset (by name) with its calibration vehicle driving its routes `times` times over (3
+    drive-pasts become 3 x times; stops per traversal repeated with them), same name; the name itself
+    when times is 1."""
+    if times == 1:
+        return preset
+    from dataclasses import replace
+
+    from sim.simulate import PRESETS
+
+    config = PRESETS[preset]
+    drive = config.drive
+    stops = None if drive.stops is None else drive.stops * times
+    return replace(config, drive=replace(drive, routes=drive.routes * times, stops=stops))
 
 
 def run_tasks(tasks: Sequence[Task], jobs: int) -> list[Run]:
@@ -783,6 +801,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="MS",
         help="every camera's latency (ms, stamp minus exposure; may be negative) in either world",
     )
+    parser.add_argument(
+        "--routes-times",
+        type=int,
+        default=1,
+        metavar="K",
+        help="the calibration vehicle drives each preset's routes K times over (default 1)",
+    )
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--json", type=Path, help="also write every run and the summary here")
     parser.add_argument(
@@ -819,8 +844,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.latency is not None and not -1000.0 <= args.latency <= 1000.0:
             parser.error(f"--latency {args.latency}: a latency in ms, -1000..1000")
         latency_s = None if args.latency is None else args.latency / 1e3
-        runs = _run_all(names, seeds, args.jobs, args.ideal, readout_s, latency_s)
+        if not 1 <= args.routes_times <= 10:
+            parser.error(f"--routes-times {args.routes_times}: how many times over, 1-10")
+        runs = _run_all(names, seeds, args.jobs, args.ideal, readout_s, latency_s, args.routes_times)
         world = "IDEAL world (cuboid boxes, no latency, IMU poses)" if args.ideal else "real world"
+        if args.routes_times > 1:
+            world += f", every preset's routes driven {args.routes_times} times over"
         if readout_s is not None:
             world += f", every camera with a {args.readout:g} ms rolling-shutter readout"
         if latency_s is not None:

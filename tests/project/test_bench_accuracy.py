@@ -49,3 +49,19 @@ def test_the_chi2_line_counts_the_poses_beyond_their_whole_covariance() -> None:
     assert coverage_line(runs).endswith(
         "error / covariance (chi-square, 6 dof) median 5.00 (honest 5.35), above 20.1 1 of 4 (honest 0.27 %)"
     )
+
+
+def test_routes_driven_k_times_over_keep_the_presets_name_and_its_stops() -> None:
+    from bench.accuracy import repeated_routes
+    from sim.presets import PRESETS
+
+    assert repeated_routes("sil-north", 1) == "sil-north"
+    base = PRESETS["sil-north"]
+    tripled = repeated_routes("sil-north", 3)
+    assert not isinstance(tripled, str)
+    assert tripled.name == "sil-north" and tripled.drive.routes == base.drive.routes * 3
+    assert tripled.cameras == base.cameras and tripled.drive.stops is None
+    carla = PRESETS["carla-like"].drive  # stops given per traversal
+    doubled = repeated_routes("carla-like", 2)
+    assert not isinstance(doubled, str) and carla.stops is not None
+    assert doubled.drive.routes == carla.routes * 2 and doubled.drive.stops == carla.stops * 2
