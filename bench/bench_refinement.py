@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "pipeline
 
 import test_refinement as scene
 
-from pipeline.refinement import RefinementParams, refine_bottom_edge, refine_whole_box
+from pipeline.refinement import Refinement, RefinementParams, refine_bottom_edge, refine_whole_box
 
 SEEDS = 20
 
@@ -39,9 +40,11 @@ def bias_table() -> None:
             for seed in range(SEEDS):
                 start = scene.perturbed(truth, np.random.default_rng(seed), shift_m, angle_deg)
                 starts.append(scene.start_delta_p(tracks, start, camera, ground))
+                R0, t0 = start
                 runs = {
                     "paper one-shot": refine_bottom_edge(
-                        *start,
+                        R0,
+                        t0,
                         tracks,
                         camera,
                         scene.VEHICLE,
@@ -49,7 +52,8 @@ def bias_table() -> None:
                         RefinementParams(iterate_correspondences=False),
                     ),
                     "paper 10 rounds": refine_bottom_edge(
-                        *start,
+                        R0,
+                        t0,
                         tracks,
                         camera,
                         scene.VEHICLE,
@@ -57,10 +61,10 @@ def bias_table() -> None:
                         RefinementParams(iterate_correspondences=False, paper_rounds=10),
                     ),
                     "iterated bottom": refine_bottom_edge(
-                        *start, tracks, camera, scene.VEHICLE, ground, RefinementParams()
+                        R0, t0, tracks, camera, scene.VEHICLE, ground, RefinementParams()
                     ),
                     "whole box": refine_whole_box(
-                        *start, tracks, camera, scene.VEHICLE, RefinementParams(), ground=ground
+                        R0, t0, tracks, camera, scene.VEHICLE, RefinementParams(), ground=ground
                     ),
                 }
                 for name, result in runs.items():
@@ -96,9 +100,11 @@ def covariance_table() -> None:
             scene.left_turn((60.0, -2.0), 40.0, 12.0, 40.0),
         ],
     }
+    R_true, t_true = truth
     for name, paths in scenes.items():
         result = refine_whole_box(
-            *truth,
+            R_true,
+            t_true,
             scene.exact_tracks(paths, truth, camera),
             camera,
             scene.VEHICLE,
@@ -117,15 +123,15 @@ def timings() -> None:
     truth = scene.camera_pose(*scene.STANDARD)
     tracks = scene.exact_tracks(scene.junction_paths(step_m=0.15), truth, camera)
     ground = scene.track_ground(tracks)
-    start = scene.perturbed(truth, np.random.default_rng(1))
+    R0, t0 = scene.perturbed(truth, np.random.default_rng(1))
     count = sum(len(tr.boxes) for tr in tracks)
-    calls = {
-        "whole box": lambda: refine_whole_box(*start, tracks, camera, scene.VEHICLE, RefinementParams()),
+    calls: dict[str, Callable[[], Refinement]] = {
+        "whole box": lambda: refine_whole_box(R0, t0, tracks, camera, scene.VEHICLE, RefinementParams()),
         "iterated bottom": lambda: refine_bottom_edge(
-            *start, tracks, camera, scene.VEHICLE, ground, RefinementParams()
+            R0, t0, tracks, camera, scene.VEHICLE, ground, RefinementParams()
         ),
         "paper one-shot": lambda: refine_bottom_edge(
-            *start, tracks, camera, scene.VEHICLE, ground, RefinementParams(iterate_correspondences=False)
+            R0, t0, tracks, camera, scene.VEHICLE, ground, RefinementParams(iterate_correspondences=False)
         ),
     }
     for name, call in calls.items():
