@@ -396,19 +396,16 @@ def _towed_yaw(path: Path, lag_m: float) -> FloatArray:
     (measured on a 180 deg arc: 6 rounds for a / R = 0.12; at a / R = 0.5 the 8th still moves it 2e-8 rad)."""
     if not lag_m > 0.0:
         raise SimulationError("rear_axle_m", f"must lie behind the body's centre (lag {lag_m} m)")
-    yaw = path.yaw
-    if len(yaw) < 2:
-        return yaw.copy()
-    step = float(path.s[1] - path.s[0])
-    alpha = 1.0 - math.exp(-step / lag_m)
+    yaw = path.yaw  # Path.from_samples: at least 2 samples, uniformly spaced
+    alpha = 1.0 - math.exp(-float(path.s[1] - path.s[0]) / lag_m)
     b, a = [alpha / 2.0, alpha / 2.0], [1.0, alpha - 1.0]
     psi = yaw.copy()
     for _ in range(8):
-        drive = yaw - ((yaw - psi) - np.sin(yaw - psi))
-        updated = yaw[0] + lfilter(b, a, drive - drive[0])
-        done = float(np.max(np.abs(updated - psi))) < 1e-12
+        # The linear part's input with the remainder moved over: yaw - (x - sin x) = psi + sin x.
+        updated = yaw[0] + lfilter(b, a, psi + np.sin(yaw - psi) - yaw[0])
+        settled = float(np.max(np.abs(updated - psi))) < 1e-12
         psi = updated
-        if done:
+        if settled:
             break
     return np.asarray(psi, dtype=np.float64)
 

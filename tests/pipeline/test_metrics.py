@@ -23,6 +23,8 @@ from pipeline.camera import (
 from pipeline.errors import InputError, ShapeError
 from pipeline.ground import GroundPlaneFit
 from pipeline.metrics import (
+    POSE_CHI2_3SIGMA,
+    POSE_CHI2_MEDIAN,
     DeltaPParams,
     delta_p,
     evaluate_against_ground_truth,
@@ -453,3 +455,12 @@ def test_the_pose_chi2_without_a_covariance_or_of_a_singular_one() -> None:
     assert normalised_pose_error(d, np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])) is None
     with pytest.raises(ShapeError, match="covariance"):
         normalised_pose_error(d, np.eye(5))
+
+
+def test_the_chi2_reference_values_are_a_6_dof_chi_square() -> None:
+    """The honest median and 3-sigma value that evaluate and bench.accuracy print (kept as numbers so
+    that pipeline.metrics does not import scipy.stats)."""
+    from scipy.stats import chi2
+
+    assert abs(POSE_CHI2_MEDIAN - chi2.median(6)) < 1e-3
+    assert abs(POSE_CHI2_3SIGMA - chi2.isf(0.0027, 6)) < 5e-3
