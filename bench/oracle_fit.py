@@ -24,8 +24,13 @@ import argparse
 import math
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from pipeline.association import MatchedTrack, Trajectory
+    from sim.simulate import SimulationResult
 
 
 def fit_errors(
@@ -37,9 +42,6 @@ def fit_errors(
     height_noise: str | None = None,
 ) -> list[dict[str, object]]:
     """One record per camera that saw the vehicle in at least 50 frames."""
-    from bench.common import inputs_for
-    from pipeline.association import AssociationParams, MatchedTrack, Trajectory, make_trajectory
-    from pipeline.attitude import with_path_pitch
     from pipeline.camera import CameraModel, rotation_angle_rad
     from pipeline.vehicle_model import ModelParams, fit_trimmed
     from sim.simulate import simulate
@@ -47,38 +49,10 @@ def fit_errors(
     sim = simulate(preset, seed)
     records: list[dict[str, object]] = []
     for camera in sim.cameras:
-        truth = sim.ground_truth[camera.camera_id]
-        rows = [
-            (frame.stamp_ns, frame.boxes[seen.calib_box], seen.traversal)
-            for frame, seen in zip(sim.detections[camera.camera_id], truth.frames, strict=True)
-            if seen.calib_box is not None
-        ]
-        if len(rows) < 50:
+        case = oracle_inputs(sim, camera.camera_id, seed, poses, true_heights, height_noise)
+        if case is None:
             continue
-        tracks = []
-        for traversal in sorted({row[2] for row in rows if row[2] is not None}):
-            chosen = [row for row in rows if row[2] == traversal]
-            stamps = np.array([row[0] for row in chosen], dtype=np.int64)
-            boxes = np.array([[b.x1, b.y1, b.x2, b.y2] for _, b, _ in chosen], dtype=np.float64)
-            tracks.append(MatchedTrack(traversal, stamps, boxes, np.zeros((len(stamps), 6))))
-        # Trajectory stamps on the boxes' clock: the true instants plus the camera's latency.
-        true_stamps = sim.true_stamps.astype(np.int64) + truth.latency_ns
-        true_poses = sim.true_poses.copy()
-        if height_noise is not None:
-            true_poses[:, 2] += height_errors(true_stamps, height_noise, np.random.default_rng([seed, 7]))
-        trajectory = Trajectory(true_stamps, true_poses)
-        if poses == "cam":
-            # As the pipeline builds it (make_trajectory: sorted, on the camera clock), then on the boxes'.
-            inputs = inputs_for(sim, camera.camera_id)
-            cam = make_trajectory(
-                inputs.poses, sim.origin, AssociationParams(time_offset_ns=inputs.time_offset_ns)
-            )
-            stamps, local = cam.stamps + truth.latency_ns, cam.poses.copy()
-            if true_heights:
-                local[:, 2] = np.interp(
-                    stamps.astype(np.float64), true_stamps.astype(np.float64), sim.true_poses[:, 2]
-                )
-            trajectory = with_path_pitch(Trajectory(stamps, local))
+        tracks, trajectory = case
         R, t = camera.R_cam_from_local, camera.t_cam_from_local
         model = CameraModel.from_intrinsics(camera.intrinsics)
         params = ModelParams()
@@ -92,7 +66,7 @@ def fit_errors(
                 "preset": preset,
                 "seed": seed,
                 "camera": camera.camera_id,
-                "vehicle_type": truth.vehicle_type,
+                "vehicle_type": sim.ground_truth[camera.camera_id].vehicle_type,
                 "position_error_m": float(np.linalg.norm(error)),
                 "horizontal_error_m": float(np.hypot(error[0], error[1])),
                 "height_error_m": float(error[2]),
@@ -101,6 +75,57 @@ def fit_errors(
             }
         )
     return records
+
+
+def oracle_inputs(
+    sim: SimulationResult,
+    camera_id: str,
+    seed: int,
+    poses: str,
+    true_heights: bool = False,
+    height_noise: str | None = None,
+) -> tuple[list[MatchedTrack], Trajectory] | None:
+    """The calibration vehicle's own detected boxes in `camera_id`, one track per traversal (the truth
+    says which), and the vehicle's trajectory on those boxes' clock (the true instants plus the camera's
+    latency): the true poses (`poses` "true", with `height_noise` on their heights) or the CAM poses as the
+    pipeline builds them (`poses` "cam", with the true heights where `true_heights`). None where the camera
+    saw the vehicle in fewer than 50 frames."""
+    from bench.common import inputs_for
+    from pipeline.association import AssociationParams, MatchedTrack, Trajectory, make_trajectory
+    from pipeline.attitude import with_path_pitch
+
+    truth = sim.ground_truth[camera_id]
+    rows = [
+        (frame.stamp_ns, frame.boxes[seen.calib_box], seen.traversal)
+        for frame, seen in zip(sim.detections[camera_id], truth.frames, strict=True)
+        if seen.calib_box is not None
+    ]
+    if len(rows) < 50:
+        return None
+    tracks = []
+    for traversal in sorted({row[2] for row in rows if row[2] is not None}):
+        chosen = [row for row in rows if row[2] == traversal]
+        stamps = np.array([row[0] for row in chosen], dtype=np.int64)
+        boxes = np.array([[b.x1, b.y1, b.x2, b.y2] for _, b, _ in chosen], dtype=np.float64)
+        tracks.append(MatchedTrack(traversal, stamps, boxes, np.zeros((len(stamps), 6))))
+    true_stamps = sim.true_stamps.astype(np.int64) + truth.latency_ns
+    true_poses = sim.true_poses.copy()
+    if height_noise is not None:
+        true_poses[:, 2] += height_errors(true_stamps, height_noise, np.random.default_rng([seed, 7]))
+    trajectory = Trajectory(true_stamps, true_poses)
+    if poses == "cam":
+        # As the pipeline builds it (make_trajectory: sorted, on the camera clock), then on the boxes'.
+        inputs = inputs_for(sim, camera_id)
+        cam = make_trajectory(
+            inputs.poses, sim.origin, AssociationParams(time_offset_ns=inputs.time_offset_ns)
+        )
+        stamps, local = cam.stamps + truth.latency_ns, cam.poses.copy()
+        if true_heights:
+            local[:, 2] = np.interp(
+                stamps.astype(np.float64), true_stamps.astype(np.float64), sim.true_poses[:, 2]
+            )
+        trajectory = with_path_pitch(Trajectory(stamps, local))
+    return tracks, trajectory
 
 
 def height_errors(stamps_ns: np.ndarray, kind: str, rng: np.random.Generator) -> np.ndarray:
