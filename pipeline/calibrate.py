@@ -186,6 +186,20 @@ class CalibrationOutcome:
     imprecise: bool = False
 
 
+def with_vehicle_gnss(params: PipelineParams, vehicle: VehicleProfile) -> PipelineParams:
+    """The final fit's settings for the vehicle's GNSS as its profile gives it (`gnss_wander_m`): each
+    drive-past's own error into the uncertainty, and a height per drive-past tried only where the profile
+    says its heights wander (0: a track known to hold, where the freedom would only cost;
+    vehicle_model.ModelParams.try_drive_past_heights)."""
+    horizontal, height = vehicle.gnss_wander_m
+    model = replace(
+        params.model,
+        drive_past_gnss_std_m=(horizontal, height),
+        try_drive_past_heights=params.model.try_drive_past_heights and height > 0.0,
+    )
+    return replace(params, model=model)
+
+
 def calibrate(
     inputs: CalibrationInputs,
     params: PipelineParams,
@@ -201,9 +215,7 @@ def calibrate(
     the independent per-track hypothesis fits; the caller may pass a process pool's map to use several cores
     (results are identical), the pipeline itself starts no workers.
     """
-    # Each drive-past's own GNSS error, as the vehicle's profile gives it, into the final fit's uncertainty.
-    horizontal, height = inputs.vehicle.gnss_wander_m
-    params = replace(params, model=replace(params.model, drive_past_gnss_std_m=(horizontal, height)))
+    params = with_vehicle_gnss(params, inputs.vehicle)
     # One BLAS / OpenMP thread for the whole job: every matrix here is tiny (at most a few thousand rows by
     # 6 columns) and the worker threads only add hand-off cost; on a busy 2-core RSU a (4000, 6) SVD took
     # 84 ms with OpenBLAS's 2 threads against 1.4 ms with one. The previous limits are restored on return.

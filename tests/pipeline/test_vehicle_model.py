@@ -389,10 +389,29 @@ def test_drive_past_heights_are_kept_only_where_the_boxes_show_them():
     trajectory, tracks = _five_passes(0.0, 0.0, seed=1, passes=2, heights=HEIGHTS_TRUE[:2])
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, params)
     assert with_drive_past_heights(fit, tracks, trajectory, CAMERA, VEHICLE, params)[0] is fit
-    # Not tried unless asked for.
+    # Tried by default; not where switched off.
+    assert ModelParams().try_drive_past_heights
+    off = replace(ModelParams(), try_drive_past_heights=False)
     trajectory, tracks = _five_passes(0.0, 0.0, seed=1, heights=HEIGHTS_TRUE)
-    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
-    assert with_drive_past_heights(fit, tracks, trajectory, CAMERA, VEHICLE, ModelParams())[0] is fit
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, off)
+    assert with_drive_past_heights(fit, tracks, trajectory, CAMERA, VEHICLE, off)[0] is fit
+
+
+def test_the_vehicle_profile_says_whether_drive_past_heights_are_tried():
+    from pipeline.calibrate import PipelineParams, with_vehicle_gnss
+
+    wandering = with_vehicle_gnss(
+        PipelineParams(), VEHICLE.model_copy(update={"gnss_wander_m": (0.03, 0.06)})
+    )
+    assert wandering.model.try_drive_past_heights
+    assert wandering.model.drive_past_gnss_std_m == (0.03, 0.06)
+    # Heights known to hold (a post-processed track; the first simulator's vehicle): nothing to estimate.
+    holding = with_vehicle_gnss(PipelineParams(), VEHICLE.model_copy(update={"gnss_wander_m": (0.03, 0.0)}))
+    assert not holding.model.try_drive_past_heights
+    assert holding.model.drive_past_gnss_std_m == (0.03, 0.0)
+    # Switched off in the settings, the profile does not switch it on.
+    off = PipelineParams(model=replace(ModelParams(), try_drive_past_heights=False))
+    assert not with_vehicle_gnss(off, VEHICLE).model.try_drive_past_heights
 
 
 def test_a_left_out_drive_pasts_height_is_known_to_the_others_only_by_its_prior():
