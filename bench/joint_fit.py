@@ -46,13 +46,11 @@ from pipeline.vehicle_model import (
     TRAVERSAL_GAP_S,
     ModelFit,
     ModelParams,
-    PoseSampler,
-    _data_of,
     _Model,
-    _prior_std,
     fit_trimmed,
     largest_stds,
     shape_prior,
+    start_model,
 )
 
 SHAPE_ROWS = list(range(_SHAPE.start, _SHAPE.stop))
@@ -113,26 +111,13 @@ def fit_together(
     heights = replace(params, drive_past_heights=True)
     models: list[_Model] = []
     starts: list[FloatArray] = []
+    shared = ("shape", "heights") if share_shape else ("heights",)
     for case in cases:
-        sampler = PoseSampler.of(case.trajectory)
-        data = _data_of(case.tracks, sampler, case.camera, heights)
-        k = len(data.drive_past_spans_ns)
-        mean = np.zeros(N_PARAMS + k)
-        mean[_SHAPE] = shape_prior(heights, vehicle)[0]
-        mean[_READOUT] = heights.readout_s
-        prior = _prior_std(heights, k, vehicle)
-        prior[N_PARAMS:] = math.inf  # the shared priors are rows of their own
-        if share_shape:
-            prior[_SHAPE] = math.inf
+        R0, C0 = case.start.R_cam_from_local, case.start.camera_centre
+        model, mean = start_model(R0, C0, case.tracks, case.trajectory, case.camera, vehicle, heights, shared)
         x = mean.copy()
         x[_DELTA], x[_SHAPE] = case.start.time_shift_s, case.start.shape
         x[_BIAS], x[_READOUT] = case.start.bias, case.start.readout_s
-        R0, C0 = case.start.R_cam_from_local, case.start.camera_centre
-        model = _Model(data, sampler, R0, C0, case.camera, vehicle, heights, mean, prior)
-        behind = model.behind_camera(x)
-        if behind.any():
-            data = replace(data, used=data.used & ~behind[:, None])
-            model = _Model(data, sampler, R0, C0, case.camera, vehicle, heights, mean, prior)
         model.set_skew(x)
         model.weigh(x)
         models.append(model)

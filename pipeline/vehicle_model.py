@@ -36,7 +36,7 @@ common GNSS offset; check_traversals then raises it to the scatter of the traver
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field, replace
 from statistics import NormalDist
 
@@ -430,27 +430,12 @@ def fit_vehicle_model(
     params: ModelParams,
 ) -> ModelFit:
     """Fit pose, time shift, template and detector bias to the tracks' boxes, from the given pose."""
-    sampler = PoseSampler.of(trajectory)
     if not tracks or sum(len(t.boxes) for t in tracks) == 0:
         raise DegenerateGeometry("joint fit: no boxes")
-    data = _data_of(tracks, sampler, camera, params)
-    heights = params.height_count(len(data.drive_past_spans_ns))
     R0 = np.asarray(R_cam_from_local, dtype=np.float64)
     C0 = camera_centre(R0, np.asarray(t_cam_from_local, dtype=np.float64))
-    mean = np.zeros(N_PARAMS + heights)
-    mean[_SHAPE] = shape_prior(params, vehicle)[0]
-    mean[_READOUT] = params.readout_s
-    prior_std = _prior_std(params, heights, vehicle)
-    model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
-    # A box whose vehicle the start puts partly behind the camera has no tight box in the model: its clamped
-    # projection misses by up to 10^5 px with a Jacobian to match, and even a robust loss lets such rows
-    # drag the pose off (an identity switch onto another car while the calibration vehicle had driven
-    # under and past the camera: an exact scene's fit from the true pose ended 14 m off). Its edges are
-    # left out of the fit, as clipped ones are (NaN residuals: fit_trimmed then drops the box).
-    behind = model.behind_camera(mean)
-    if behind.any():
-        data = replace(data, used=data.used & ~behind[:, None])
-        model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
+    model, mean = start_model(R0, C0, tracks, trajectory, camera, vehicle, params)
+    data, heights = model.data, model.heights
     needed = 2 * (N_PARAMS + heights)
     if int(data.used.sum()) < needed:
         raise DegenerateGeometry(
@@ -496,6 +481,44 @@ def fit_vehicle_model(
         evaluations += int(solution.nfev)
         converged = bool(solution.status > 0)
     return _assemble(model, x, converged, evaluations, scene_range)
+
+
+def start_model(
+    R0: Rotation,
+    C0: Vec3,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+    shared: Collection[str] = (),
+) -> tuple[_Model, FloatArray]:
+    """The model `params` describes on the tracks' boxes, around the pose (R0, C0), and its prior mean (the
+    parameter vector a fit starts from): the template's prior, the readout's, no height offsets. The parts
+    named in `shared` ("shape": the template, "heights": the drive-pasts' height offsets) get no prior rows:
+    a caller that fits several cameras together carries those priors once (bench.joint_fit)."""
+    sampler = PoseSampler.of(trajectory)
+    data = _data_of(tracks, sampler, camera, params)
+    heights = params.height_count(len(data.drive_past_spans_ns))
+    mean = np.zeros(N_PARAMS + heights)
+    mean[_SHAPE] = shape_prior(params, vehicle)[0]
+    mean[_READOUT] = params.readout_s
+    prior_std = _prior_std(params, heights, vehicle)
+    if "shape" in shared:
+        prior_std[_SHAPE] = math.inf
+    if "heights" in shared:
+        prior_std[N_PARAMS:] = math.inf
+    model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
+    # A box whose vehicle the start puts partly behind the camera has no tight box in the model: its clamped
+    # projection misses by up to 10^5 px with a Jacobian to match, and even a robust loss lets such rows
+    # drag the pose off (an identity switch onto another car while the calibration vehicle had driven
+    # under and past the camera: an exact scene's fit from the true pose ended 14 m off). Its edges are
+    # left out of the fit, as clipped ones are (NaN residuals: fit_trimmed then drops the box).
+    behind = model.behind_camera(mean)
+    if behind.any():
+        data = replace(data, used=data.used & ~behind[:, None])
+        model = _Model(data, sampler, R0, C0, camera, vehicle, params, mean, prior_std)
+    return model, mean
 
 
 class _Model:
