@@ -34,6 +34,7 @@ from pipeline.vehicle_model import (
     cuboid_params,
     cuboid_rejection,
     drive_past_gnss_moves,
+    fit_to_the_end,
     fit_trimmed,
     fit_vehicle_model,
     holdout_error,
@@ -535,7 +536,7 @@ def with_roof_raise(joint: JointFit, scene: Scene, model: ModelParams, map_fn: M
     free[ROOF_RAISE_INDEX] = model.roof_raise_std_m
     raised_params = replace(params, shape_std=tuple(free))
     try:
-        raised = fit_vehicle_model(
+        raised = fit_to_the_end(
             fit.R_cam_from_local, fit.t_cam_from_local, joint.used, trajectory, camera, vehicle, raised_params
         )
     except DegenerateGeometry:

@@ -1658,7 +1658,7 @@ def with_drive_past_heights(
         return fit, params
     heights = replace(params, drive_past_heights=True)
     try:
-        refit = fit_vehicle_model(
+        refit = fit_to_the_end(
             fit.R_cam_from_local, fit.t_cam_from_local, tracks, trajectory, camera, vehicle, heights
         )
     except DegenerateGeometry:
@@ -1666,6 +1666,31 @@ def with_drive_past_heights(
     if not refit.converged or refit.heights_chi2() <= chi2_quantile(params.heights_chi2_p, drive_pasts):
         return fit, params
     return refit, heights
+
+
+TRIAL_PATIENCE = 3  # fit_to_the_end's evaluation limit, in multiples of the model's
+
+
+def fit_to_the_end(
+    R_cam_from_local: Rotation,
+    t_cam_from_local: Vec3,
+    tracks: Sequence[MatchedTrack],
+    trajectory: Trajectory,
+    camera: CameraModel,
+    vehicle: VehicleProfile,
+    params: ModelParams,
+) -> ModelFit:
+    """`fit_vehicle_model`, and where it stopped at its evaluation limit, once more from the same start with
+    TRIAL_PATIENCE times the limit. For the trials whose freedom is kept only from a converged fit (a
+    height per drive-past, the roof's raise): a trial the solver's budget cut short is no answer, and
+    losing it silently decided for the held model (unseen scene 15's roof box: the trial with the heights
+    free stopped at 100 evaluations on a raise of +0.48 +- 0.04 m, converged in 142 at the same raise, and
+    the camera went from 0.25 m off, refused, to 0.05 m off)."""
+    fit = fit_vehicle_model(R_cam_from_local, t_cam_from_local, tracks, trajectory, camera, vehicle, params)
+    if fit.converged:
+        return fit
+    patient = replace(params, max_evaluations=TRIAL_PATIENCE * params.max_evaluations)
+    return fit_vehicle_model(R_cam_from_local, t_cam_from_local, tracks, trajectory, camera, vehicle, patient)
 
 
 def chi2_quantile(upper: float, dof: int) -> float:

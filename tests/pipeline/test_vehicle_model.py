@@ -45,6 +45,7 @@ from pipeline.vehicle_model import (
     cuboid_rejection,
     cuboid_shape,
     dominating_covariance,
+    fit_to_the_end,
     fit_trimmed,
     fit_vehicle_model,
     leave_one_out,
@@ -395,6 +396,34 @@ def test_drive_past_heights_are_kept_only_where_the_boxes_show_them():
     trajectory, tracks = _five_passes(0.0, 0.0, seed=1, heights=HEIGHTS_TRUE)
     fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, off)
     assert with_drive_past_heights(fit, tracks, trajectory, CAMERA, VEHICLE, off)[0] is fit
+
+
+def test_a_trial_the_solvers_budget_cut_short_is_run_to_its_end():
+    """A freedom kept only from a converged trial (here the heights) is not lost to the evaluation limit:
+    where the limit stops the trial, it runs again with TRIAL_PATIENCE times the limit and reaches the
+    optimum a generous limit finds."""
+    R0, t0 = _start(1)
+    trajectory, tracks = _five_passes(0.0, 0.0, seed=1, heights=HEIGHTS_TRUE)
+    short = replace(ModelParams(), try_drive_past_heights=True, max_evaluations=10)
+    heights = replace(short, drive_past_heights=True)
+    assert not fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, heights).converged
+    patient = fit_to_the_end(R0, t0, tracks, trajectory, CAMERA, VEHICLE, heights)
+    generous = fit_vehicle_model(
+        R0, t0, tracks, trajectory, CAMERA, VEHICLE, replace(heights, max_evaluations=100)
+    )
+    assert patient.converged and generous.converged
+    assert np.linalg.norm(patient.camera_centre - generous.camera_centre) < 1e-6
+    np.testing.assert_allclose(patient.height_offsets_m, generous.height_offsets_m, atol=1e-6)
+    # So the heights the boxes show are kept although the first try stopped at its limit.
+    fit = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, short)
+    chosen, chosen_params = with_drive_past_heights(fit, tracks, trajectory, CAMERA, VEHICLE, short)
+    assert chosen_params.drive_past_heights and chosen.converged
+    assert np.all(np.abs(chosen.height_offsets_m - HEIGHTS_TRUE) < 3 * chosen.height_offsets_std_m)
+    # A fit that converged within the limit is the plain fit's.
+    converged = fit_to_the_end(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+    plain = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+    assert converged.converged and converged.iterations == plain.iterations
+    np.testing.assert_array_equal(converged.camera_centre, plain.camera_centre)
 
 
 def test_the_vehicle_profile_says_whether_drive_past_heights_are_tried():
