@@ -24,6 +24,7 @@ from pipeline.vehicle_model import (
     READOUT,
     ROOF_RAISE_INDEX,
     TIME_SHIFT,
+    TRIAL_PATIENCE,
     LeftOut,
     ModelFit,
     ModelParams,
@@ -34,7 +35,6 @@ from pipeline.vehicle_model import (
     cuboid_params,
     cuboid_rejection,
     drive_past_gnss_moves,
-    fit_to_the_end,
     fit_trimmed,
     fit_vehicle_model,
     holdout_error,
@@ -573,8 +573,15 @@ def _raise_trial(
     free[ROOF_RAISE_INDEX] = model.roof_raise_std_m
     raised_params = replace(params, shape_std=tuple(free))
     try:
-        raised = fit_to_the_end(
-            fit.R_cam_from_local, fit.t_cam_from_local, joint.used, trajectory, camera, vehicle, raised_params
+        raised = fit_vehicle_model(
+            fit.R_cam_from_local,
+            fit.t_cam_from_local,
+            joint.used,
+            trajectory,
+            camera,
+            vehicle,
+            raised_params,
+            patience=TRIAL_PATIENCE,
         )
     except DegenerateGeometry:
         return replace(joint, roof_raise_std_m=0.0)

@@ -30,6 +30,7 @@ from pipeline.vehicle_model import (
     ROOF_RAISE_INDEX,
     SHAPE_NAMES,
     TIME_SHIFT,
+    TRIAL_PATIENCE,
     ModelParams,
     PoseSampler,
     _Data,
@@ -45,7 +46,6 @@ from pipeline.vehicle_model import (
     cuboid_rejection,
     cuboid_shape,
     dominating_covariance,
-    fit_to_the_end,
     fit_trimmed,
     fit_vehicle_model,
     leave_one_out,
@@ -407,7 +407,7 @@ def test_a_trial_the_solvers_budget_cut_short_is_run_to_its_end():
     short = replace(ModelParams(), try_drive_past_heights=True, max_evaluations=10)
     heights = replace(short, drive_past_heights=True)
     assert not fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, heights).converged
-    patient = fit_to_the_end(R0, t0, tracks, trajectory, CAMERA, VEHICLE, heights)
+    patient = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, heights, TRIAL_PATIENCE)
     generous = fit_vehicle_model(
         R0, t0, tracks, trajectory, CAMERA, VEHICLE, replace(heights, max_evaluations=100)
     )
@@ -420,7 +420,7 @@ def test_a_trial_the_solvers_budget_cut_short_is_run_to_its_end():
     assert chosen_params.drive_past_heights and chosen.converged
     assert np.all(np.abs(chosen.height_offsets_m - HEIGHTS_TRUE) < 3 * chosen.height_offsets_std_m)
     # A fit that converged within the limit is the plain fit's.
-    converged = fit_to_the_end(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
+    converged = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams(), TRIAL_PATIENCE)
     plain = fit_vehicle_model(R0, t0, tracks, trajectory, CAMERA, VEHICLE, ModelParams())
     assert converged.converged and converged.iterations == plain.iterations
     np.testing.assert_array_equal(converged.camera_centre, plain.camera_centre)
